@@ -1,0 +1,296 @@
+"""Neuron tables: one row per neuron, positions in µm, optional NeuroPAL colours and names.
+
+The format is the public contract of ``docs/neuron_table.md`` (columns ``x_um, y_um, z_um``,
+optional ``R, G, B, W``, optional ``label``; other columns kept). NeuroPAL_ID's "Save ID Info"
+CSV is read and written too. Every problem is refused with one line naming the file, the line
+and the column.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .errors import TableError, atomic_write, warn
+
+COORDS = ("x_um", "y_um", "z_um")
+COLOUR_CHANNELS = ("R", "G", "B", "W")
+UNSURE_CONF = 0.5  # NeuroPAL_ID's confidence for a name written with a trailing '?'
+
+# NeuroPAL_ID "Save ID Info" layout: 7 preamble lines, then this header.
+NEUROPAL_ID_HEADER = [
+    "User ID", "User Confidence", "Emphasized?", "Auto ID", "Auto Confidence", "",
+    "Real X (um)", "Real Y (um)", "Real Z (um)", "",
+    "Internal X (px)", "Internal Y (px)", "Internal Z (slice)", "",
+    "Z-Scored Red", "Z-Scored Green", "Z-Scored Blue", "Z-Scored White", "",
+    "Estimated GFP", "Max GFP", "Normalized GFP",
+]
+_NPID_PREAMBLE_LINES = 7
+_NPID_TO_OURS = {
+    "Real X (um)": "x_um", "Real Y (um)": "y_um", "Real Z (um)": "z_um",
+    "Z-Scored Red": "R", "Z-Scored Green": "G", "Z-Scored Blue": "B", "Z-Scored White": "W",
+}
+
+
+@dataclass
+class NeuronTable:
+    """Neurons of one worm (one volume).
+
+    ``labels`` holds names without the ``?`` ('' = unnamed) and ``label_conf`` the annotator's
+    confidence (1 named, 0.5 unsure, 0 unnamed). ``extra`` keeps every other input column, in
+    input order, so that a table read and written back loses nothing.
+    """
+
+    xyz: np.ndarray
+    colours: dict[str, np.ndarray] = field(default_factory=dict)
+    labels: np.ndarray | None = None
+    label_conf: np.ndarray | None = None
+    extra: pd.DataFrame | None = None
+    source: str = "<memory>"
+
+    def __post_init__(self) -> None:
+        self.xyz = np.asarray(self.xyz, dtype=np.float64).reshape(-1, 3)
+        n = len(self.xyz)
+        self.colours = {c: np.asarray(v, dtype=np.float64).reshape(n) for c, v in self.colours.items()}
+        if self.labels is None:
+            self.labels = np.full(n, "", dtype=object)
+        self.labels = np.asarray([_clean(s) for s in self.labels], dtype=object).reshape(n)
+        if self.label_conf is None:
+            self.label_conf = np.where(self.labels != "", 1.0, 0.0)
+        self.label_conf = np.asarray(self.label_conf, dtype=np.float64).reshape(n)
+        if self.extra is None:
+            self.extra = pd.DataFrame(index=range(n))
+        self.extra = self.extra.reset_index(drop=True)
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    @property
+    def named(self) -> np.ndarray:
+        """Boolean mask of the neurons that carry a name."""
+        return self.labels != ""
+
+    @property
+    def names(self) -> list[str]:
+        return [s for s in self.labels if s]
+
+    def colour_matrix(self, channels: tuple[str, ...] | list[str]) -> np.ndarray:
+        """(N, len(channels)) array of the requested colour channels."""
+        return np.stack([self.colours[c] for c in channels], axis=1) if channels else np.zeros((len(self), 0))
+
+    def subset(self, index) -> "NeuronTable":
+        index = np.asarray(index)
+        return NeuronTable(
+            xyz=self.xyz[index],
+            colours={c: v[index] for c, v in self.colours.items()},
+            labels=self.labels[index],
+            label_conf=self.label_conf[index],
+            extra=self.extra.iloc[index].reset_index(drop=True),
+            source=self.source,
+        )
+
+    def label_strings(self) -> list[str]:
+        """Names as written in a table: 'AVAL', 'AVAL?' for unsure, '' for unnamed."""
+        return [
+            (s + "?" if c == UNSURE_CONF else s) if s else ""
+            for s, c in zip(self.labels, self.label_conf)
+        ]
+
+    def to_dataframe(self) -> pd.DataFrame:
+        df = pd.DataFrame({c: self.xyz[:, i] for i, c in enumerate(COORDS)})
+        for c in COLOUR_CHANNELS:
+            if c in self.colours:
+                df[c] = self.colours[c]
+        df["label"] = self.label_strings()
+        for c in self.extra.columns:
+            if c not in df.columns:
+                df[c] = self.extra[c].to_numpy()
+        return df
+
+
+def _clean(name) -> str:
+    if name is None or (isinstance(name, float) and np.isnan(name)):
+        return ""
+    return str(name).strip()
+
+
+def parse_name(raw) -> tuple[str, float]:
+    """'AVAL' -> ('AVAL', 1); 'AVAL?' -> ('AVAL', 0.5); '?' or '' -> ('', 0)."""
+    s = _clean(raw)
+    if s.endswith("?"):
+        s = s[:-1].strip()
+        return (s, UNSURE_CONF) if s else ("", 0.0)
+    return (s, 1.0) if s else ("", 0.0)
+
+
+def _is_neuropal_id(lines: list[str]) -> bool:
+    return any(line.startswith("User ID,") and "Real X (um)" in line for line in lines[:12])
+
+
+def read_table(path: str | os.PathLike) -> NeuronTable:
+    """Read and validate a neuron table (ours or a NeuroPAL_ID export)."""
+    path = Path(path)
+    name = str(path)
+    if not path.exists():
+        raise TableError(f"{name}: no such file")
+    if path.is_dir():
+        raise TableError(f"{name}: is a folder, not a neuron table")
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise TableError(f"{name}: not a UTF-8 text CSV file") from None
+    except OSError as exc:
+        raise TableError(f"{name}: cannot be read ({exc.strerror})") from None
+    if not text.strip():
+        raise TableError(f"{name}: the file is empty")
+    lines = text.splitlines()
+    if _is_neuropal_id(lines):
+        header_line = next(i for i, line in enumerate(lines) if line.startswith("User ID,"))
+        df = _read_csv(text, name, skiprows=header_line)
+        return _from_neuropal_id(df, name, first_line=header_line + 2)
+    df = _read_csv(text, name)
+    return table_from_dataframe(df, source=name, first_line=2)
+
+
+def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
+    try:
+        return pd.read_csv(io.StringIO(text), skiprows=skiprows, dtype=str, keep_default_na=False)
+    except pd.errors.EmptyDataError:
+        raise TableError(f"{name}: the file has no header row") from None
+    except pd.errors.ParserError as exc:
+        raise TableError(f"{name}: not a valid CSV file ({str(exc).splitlines()[0]})") from None
+
+
+def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, allow_empty: bool) -> np.ndarray:
+    raw = df[column].astype(str).str.strip()
+    values = pd.to_numeric(raw.where(raw != "", "nan"), errors="coerce").to_numpy(dtype=np.float64, copy=True)
+    bad = ~np.isfinite(values)
+    if allow_empty:
+        bad &= (raw != "").to_numpy()
+    if bad.any():
+        row = int(np.argmax(bad))
+        shown = raw.iloc[row] or "an empty cell"
+        raise TableError(
+            f"{name}: line {row + first_line}, column '{column}': {shown!s} is not a finite number"
+        )
+    return values
+
+
+def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line: int = 2) -> NeuronTable:
+    """Validate a data frame in our column layout and turn it into a :class:`NeuronTable`."""
+    df = df.copy()
+    df.columns = [str(c).strip() for c in df.columns]
+    missing = [c for c in COORDS if c not in df.columns]
+    if missing:
+        raise TableError(
+            f"{source}: missing column(s) {', '.join(missing)} (a neuron table needs x_um, y_um, z_um)"
+        )
+    if len(df) == 0:
+        raise TableError(f"{source}: the table has no rows")
+    xyz = np.stack([_numeric_column(df, c, source, first_line, allow_empty=False) for c in COORDS], axis=1)
+    colours = {}
+    for c in COLOUR_CHANNELS:
+        if c in df.columns:
+            values = _numeric_column(df, c, source, first_line, allow_empty=True)
+            if np.isnan(values).all():
+                continue
+            # A neuron without a reading gets the volume's median so that one gap does not
+            # remove the channel for the whole worm.
+            values[np.isnan(values)] = np.nanmedian(values)
+            colours[c] = values
+    labels = np.full(len(df), "", dtype=object)
+    conf = np.zeros(len(df))
+    if "label" in df.columns:
+        parsed = [parse_name(v) for v in df["label"]]
+        labels = np.array([p[0] for p in parsed], dtype=object)
+        conf = np.array([p[1] for p in parsed])
+        labels, conf = _drop_duplicate_names(labels, conf, source)
+    kept = [c for c in df.columns if c not in COORDS + COLOUR_CHANNELS + ("label",)]
+    return NeuronTable(xyz, colours, labels, conf, df[kept].reset_index(drop=True), source)
+
+
+def _drop_duplicate_names(labels: np.ndarray, conf: np.ndarray, source: str):
+    names, counts = np.unique(labels[labels != ""], return_counts=True)
+    duplicated = set(names[counts > 1])
+    if duplicated:
+        mask = np.isin(labels, list(duplicated))
+        labels = labels.copy()
+        conf = conf.copy()
+        labels[mask] = ""
+        conf[mask] = 0.0
+        shown = ", ".join(sorted(duplicated)[:8]) + (" ..." if len(duplicated) > 8 else "")
+        warn(f"{source}: name(s) {shown} occur more than once; those rows are read as unnamed")
+    return labels, conf
+
+
+def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int) -> NeuronTable:
+    ours = df.rename(columns={k: v for k, v in _NPID_TO_OURS.items() if k in df.columns})
+    if "User ID" in ours.columns:
+        ids = ours["User ID"].astype(str).str.strip()
+        if "User Confidence" in ours.columns:
+            # NeuroPAL_ID writes the unsure mark in the confidence column, not in the name.
+            conf = pd.to_numeric(ours["User Confidence"], errors="coerce")
+            unsure = (conf == UNSURE_CONF) & (ids != "") & ~ids.str.endswith("?")
+            ids = ids.where(~unsure, ids + "?")
+        ours["label"] = ids
+        ours = ours.drop(columns=["User ID"])
+    ours = ours.loc[:, [c for c in ours.columns if c and not c.startswith("Unnamed:")]]
+    return table_from_dataframe(ours, source=name, first_line=first_line)
+
+
+def write_table(table: NeuronTable | pd.DataFrame, path: str | os.PathLike) -> None:
+    """Write our CSV layout atomically (temporary file, then rename)."""
+    df = table.to_dataframe() if isinstance(table, NeuronTable) else table
+    with atomic_write(path, "w", encoding="utf-8", newline="") as handle:
+        df.to_csv(handle, index=False, float_format="%.6g")
+
+
+def write_neuropal_id(
+    table: NeuronTable,
+    path: str | os.PathLike,
+    voxel_size_zyx: tuple[float, float, float] | None = None,
+    auto_id: list[str] | None = None,
+    auto_conf: np.ndarray | None = None,
+) -> None:
+    """Write a NeuroPAL_ID "Save ID Info" CSV (1-based internal voxel coordinates)."""
+    n = len(table)
+    rows = {h: [""] * n for h in NEUROPAL_ID_HEADER if h}
+    rows["User ID"] = list(table.labels)
+    rows["User Confidence"] = [f"{c:g}" if s else "0" for s, c in zip(table.labels, table.label_conf)]
+    rows["Emphasized?"] = ["0"] * n
+    if auto_id is not None:
+        rows["Auto ID"] = list(auto_id)
+        rows["Auto Confidence"] = [f"{c:.4f}" for c in np.asarray(auto_conf)]
+    for axis, col in enumerate(["Real X (um)", "Real Y (um)", "Real Z (um)"]):
+        rows[col] = [f"{v:.4f}" for v in table.xyz[:, axis]]
+    if voxel_size_zyx is not None:
+        z, y, x = voxel_size_zyx
+        for axis, (col, size) in enumerate(
+            zip(["Internal X (px)", "Internal Y (px)", "Internal Z (slice)"], [x, y, z])
+        ):
+            rows[col] = [f"{v / size + 1:.3f}" for v in table.xyz[:, axis]]
+    for ours, theirs in [("R", "Z-Scored Red"), ("G", "Z-Scored Green"), ("B", "Z-Scored Blue"), ("W", "Z-Scored White")]:
+        if ours in table.colours:
+            v = table.colours[ours]
+            z = (v - v.mean()) / (v.std() or 1.0)
+            rows[theirs] = [f"{x:.4f}" for x in z]
+    preamble = [
+        "Version,napari-fdlc",
+        "GFP,0",
+        "Z-Score Means,0,0,0,0",
+        "Z-Score SDs,1,1,1,1",
+        "Neuron Count," + str(n),
+        "Comment,written by napari-fdlc",
+        "",
+    ]
+    assert len(preamble) == _NPID_PREAMBLE_LINES
+    columns = [rows[h] if h else [""] * n for h in NEUROPAL_ID_HEADER]
+    df = pd.DataFrame(list(zip(*columns)), columns=NEUROPAL_ID_HEADER)
+    with atomic_write(path, "w", encoding="utf-8", newline="") as handle:
+        handle.write("\n".join(preamble) + "\n")
+        df.to_csv(handle, index=False)
