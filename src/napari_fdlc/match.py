@@ -1,0 +1,122 @@
+"""From per-neuron probabilities to names: one-to-one assignment, candidates, thresholds.
+
+Everything here is plain numpy/scipy so it can be tested exactly (brute force on tiny cases).
+The model gives, for each test neuron, probabilities over template neurons plus "no match";
+:func:`name_probabilities` turns those into probabilities over *names* (several templates are
+averaged into one answer per name), and :func:`assign` picks one name per test neuron with
+``scipy.optimize.linear_sum_assignment``, each name used at most once, "no named match" allowed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+_TINY = 1e-12
+
+
+@dataclass
+class Labelling:
+    """The answer for one test worm, in the test's input order."""
+
+    names: list[str]  # vocabulary: columns of ``probs``
+    probs: np.ndarray  # (N, V) probability that test neuron j is name v
+    auto_id: list[str]  # assigned name per neuron, '' = no named match
+    auto_conf: np.ndarray  # probability of the assignment made (or of "no named match")
+    info: dict = field(default_factory=dict)
+
+    @property
+    def no_match(self) -> np.ndarray:
+        return np.clip(1.0 - self.probs.sum(axis=1), 0.0, 1.0)
+
+    def candidates(self, k: int = 3) -> tuple[list[list[str]], np.ndarray]:
+        """Top-k names and their probabilities per neuron (padded with '' / 0)."""
+        return top_k(self.probs, self.names, k)
+
+    def thresholded(self, threshold: float) -> list[str]:
+        """auto_id where its confidence reaches ``threshold``, else ''."""
+        return [n if n and c >= threshold else "" for n, c in zip(self.auto_id, self.auto_conf)]
+
+
+def name_probabilities(
+    per_template: list[tuple[np.ndarray, np.ndarray]],
+) -> tuple[list[str], np.ndarray]:
+    """Combine ``[(probs (N, M_t), template_names (M_t,)), ...]`` into (names, (N, V)).
+
+    Probability mass on unnamed template neurons counts as "no named match". With several
+    templates the per-name probabilities are averaged: a name a template lacks gets 0 from it,
+    so names that few templates know are, rightly, less likely.
+    """
+    vocabulary = sorted({n for _, names in per_template for n in names if n})
+    column = {n: i for i, n in enumerate(vocabulary)}
+    n_test = per_template[0][0].shape[0]
+    total = np.zeros((n_test, len(vocabulary)))
+    for probs, names in per_template:
+        names = np.asarray(names, dtype=object)
+        named = np.flatnonzero(names != "")
+        cols = np.array([column[names[i]] for i in named], dtype=int)
+        np.add.at(total.T, cols, probs[:, named].T)
+    return vocabulary, total / len(per_template)
+
+
+def assign(probs: np.ndarray, fixed: dict[int, int] | None = None) -> np.ndarray:
+    """One name index per test neuron (-1 = no named match), maximising the summed
+    log-probability, each name used at most once.
+
+    ``fixed`` maps test rows to name columns the user decided; those are kept and their names
+    are taken out of play for everyone else.
+    """
+    n, v = probs.shape
+    result = np.full(n, -1, dtype=int)
+    fixed = dict(fixed or {})
+    for row, col in fixed.items():
+        result[row] = col
+    rows = np.array([r for r in range(n) if r not in fixed], dtype=int)
+    cols = np.array([c for c in range(v) if c not in set(fixed.values())], dtype=int)
+    if len(rows) == 0:
+        return result
+    p = probs[np.ix_(rows, cols)]
+    no_match = np.clip(1.0 - probs[rows].sum(axis=1), _TINY, 1.0)
+    # One private "no named match" column per row, so any number of rows may stay unmatched.
+    cost = np.full((len(rows), len(cols) + len(rows)), np.inf)
+    cost[:, : len(cols)] = -np.log(np.clip(p, _TINY, 1.0))
+    cost[np.arange(len(rows)), len(cols) + np.arange(len(rows))] = -np.log(no_match)
+    cost[~np.isfinite(cost)] = 1e9
+    r, c = linear_sum_assignment(cost)
+    for row, col in zip(r, c):
+        result[rows[row]] = cols[col] if col < len(cols) else -1
+    return result
+
+
+def top_k(probs: np.ndarray, names: list[str], k: int) -> tuple[list[list[str]], np.ndarray]:
+    n, v = probs.shape
+    kk = min(k, v)
+    order = np.argsort(-probs, axis=1, kind="stable")[:, :kk]
+    cand = [[names[i] if probs[j, i] > 0 else "" for i in order[j]] + [""] * (k - kk) for j in range(n)]
+    cand_p = np.zeros((n, k))
+    cand_p[:, :kk] = np.take_along_axis(probs, order, axis=1)
+    return cand, cand_p
+
+
+def make_labelling(names: list[str], probs: np.ndarray, fixed: dict[int, str] | None = None, info: dict | None = None) -> Labelling:
+    """Assign names and fill a :class:`Labelling`. ``fixed`` maps rows to user-given names;
+    a user name the vocabulary does not know is kept for that row without a column."""
+    column = {n: i for i, n in enumerate(names)}
+    fixed = fixed or {}
+    fixed_cols = {row: column[name] for row, name in fixed.items() if name in column}
+    choice = assign(probs, fixed_cols)
+    auto_id, auto_conf = [], np.zeros(len(probs))
+    no_match = np.clip(1.0 - probs.sum(axis=1), 0.0, 1.0)
+    for j, col in enumerate(choice):
+        if j in fixed:
+            auto_id.append(fixed[j])
+            auto_conf[j] = probs[j, col] if col >= 0 else 0.0
+        elif col >= 0:
+            auto_id.append(names[col])
+            auto_conf[j] = probs[j, col]
+        else:
+            auto_id.append("")
+            auto_conf[j] = no_match[j]
+    return Labelling(names, probs, auto_id, auto_conf, dict(info or {}))

@@ -1,0 +1,221 @@
+"""The correspondence transformer (fDLC, Yu et al. 2021), written to train on a CPU.
+
+Template and test neurons are embedded from their positions alone (µm in the canonical frame of
+:mod:`napari_fdlc.geometry`, divided by ``scale_um``); no positional encoding of the order, so
+the model is permutation-equivariant. Each layer lets every neuron attend to the neurons of its
+own worm (with a learned distance bias, so that relative geometry comes for free) and then to
+the other worm (cross-attention, as in SuperGlue/LightGlue). A learned type embedding marks
+template vs test, as the paper's constant offset does.
+
+Scores between template neuron i and test neuron j are a residual on a geometric prior the model
+keeps: ``s_ij = <u_i, v_j>/sqrt(d) - alpha * |p_i + dp_i - q_j - dq_j|^2`` where the dp, dq are
+learned displacements (a soft non-rigid warp). Every test neuron also gets a "no match" logit.
+Probabilities are a softmax per test neuron over the template neurons plus "no match".
+
+Weights are stored as safetensors plus a JSON config; nothing is ever unpickled.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .errors import ModelError
+
+DEFAULT_CONFIG = {
+    "dim": 64,
+    "heads": 4,
+    "layers": 4,
+    "fourier_bands": 6,
+    "scale_um": 20.0,  # coordinates are divided by this before the network sees them
+    "prior_sigma_um": 4.0,  # initial width of the geometric prior
+}
+
+
+class FourierEmbedding(nn.Module):
+    """xyz -> MLP([xyz, sin/cos(2^k xyz)]): lets a small network resolve µm-scale structure."""
+
+    def __init__(self, dim: int, bands: int):
+        super().__init__()
+        self.register_buffer("freqs", (2.0 ** torch.arange(bands)) * math.pi / 4, persistent=False)
+        width = 3 + 6 * bands
+        self.mlp = nn.Sequential(nn.Linear(width, 2 * dim), nn.GELU(), nn.Linear(2 * dim, dim))
+
+    def forward(self, xyz: torch.Tensor) -> torch.Tensor:
+        angles = xyz[..., None] * self.freqs  # B N 3 K
+        feats = torch.cat([xyz, angles.sin().flatten(-2), angles.cos().flatten(-2)], dim=-1)
+        return self.mlp(feats)
+
+
+class Attention(nn.Module):
+    """Multi-head attention with an optional additive bias and a key padding mask."""
+
+    def __init__(self, dim: int, heads: int):
+        super().__init__()
+        self.heads = heads
+        self.q = nn.Linear(dim, dim)
+        self.kv = nn.Linear(dim, 2 * dim)
+        self.out = nn.Linear(dim, dim)
+
+    def forward(self, x, context, key_mask, bias=None):
+        b, n, d = x.shape
+        h = self.heads
+        q = self.q(x).view(b, n, h, d // h).transpose(1, 2)
+        k, v = self.kv(context).view(b, -1, 2, h, d // h).permute(2, 0, 3, 1, 4)
+        mask = key_mask[:, None, None, :]  # B 1 1 M, True = real neuron
+        attn_bias = torch.zeros((), dtype=x.dtype) if bias is None else bias
+        attn_bias = attn_bias.masked_fill(~mask, float("-inf"))
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_bias)
+        return self.out(out.transpose(1, 2).reshape(b, n, d))
+
+
+class Block(nn.Module):
+    """Self-attention within each worm (distance-biased), then cross-attention between worms."""
+
+    def __init__(self, dim: int, heads: int):
+        super().__init__()
+        self.self_attn = Attention(dim, heads)
+        self.cross_attn = Attention(dim, heads)
+        self.norms = nn.ModuleList(nn.LayerNorm(dim) for _ in range(3))
+        self.ffn = nn.Sequential(nn.Linear(dim, 2 * dim), nn.GELU(), nn.Linear(2 * dim, dim))
+        # One learned locality per head: bias = -softplus(w_h) * |p_i - p_j|^2.
+        self.locality = nn.Parameter(torch.linspace(-2.0, 3.0, heads))
+
+    def forward(self, desc, sq_dist, mask):
+        # Template and test share the weights; run them as one batch of 2B sets.
+        x = self.norms[0](desc)
+        bias = -F.softplus(self.locality)[None, :, None, None] * sq_dist[:, None]
+        desc = desc + self.self_attn(x, x, mask, bias)
+        b = desc.shape[0] // 2
+        swapped = torch.cat([desc[b:], desc[:b]])
+        swapped_mask = torch.cat([mask[b:], mask[:b]])
+        desc = desc + self.cross_attn(self.norms[1](desc), self.norms[1](swapped), swapped_mask)
+        return desc + self.ffn(self.norms[2](desc))
+
+
+class CorrespondenceModel(nn.Module):
+    """fDLC-style matcher: log p(test j ↔ template i), plus a "no match" column."""
+
+    def __init__(self, config: dict | None = None):
+        super().__init__()
+        self.config = {**DEFAULT_CONFIG, **(config or {})}
+        dim, heads = self.config["dim"], self.config["heads"]
+        self.embed = FourierEmbedding(dim, self.config["fourier_bands"])
+        self.role = nn.Parameter(torch.zeros(2, dim))  # marks template (0) and test (1)
+        self.blocks = nn.ModuleList(Block(dim, heads) for _ in range(self.config["layers"]))
+        self.project = nn.Linear(dim, dim)
+        # Zero start: the first scores are the geometric prior alone (the non-learned floor),
+        # so training on a CPU starts from a sensible matcher rather than from noise.
+        nn.init.zeros_(self.project.weight)
+        self.displace = nn.Linear(dim, 3)
+        nn.init.zeros_(self.displace.weight)
+        nn.init.zeros_(self.displace.bias)
+        self.no_match = nn.Linear(dim, 1)
+        sigma = self.config["prior_sigma_um"] / self.config["scale_um"]
+        self.log_alpha = nn.Parameter(torch.tensor(math.log(1.0 / (2 * sigma**2))))
+
+    def forward(self, template_xyz, test_xyz, template_mask=None, test_mask=None):
+        """template_xyz (B, M, 3) and test_xyz (B, N, 3) in µm, canonical frame.
+
+        Returns log-probabilities (B, N, M + 1); column M is "no match". Padded template columns
+        get -inf; padded test rows are garbage and must be ignored by the caller.
+        """
+        b, m, _ = template_xyz.shape
+        n = test_xyz.shape[1]
+        if template_mask is None:
+            template_mask = torch.ones(b, m, dtype=torch.bool, device=template_xyz.device)
+        if test_mask is None:
+            test_mask = torch.ones(b, n, dtype=torch.bool, device=test_xyz.device)
+        scale = self.config["scale_um"]
+        # One padded batch of 2B sets: templates first, then tests.
+        size = max(m, n)
+        xyz = torch.cat([_pad(template_xyz, size), _pad(test_xyz, size)]) / scale
+        mask = torch.cat([_pad(template_mask, size), _pad(test_mask, size)])
+        desc = self.embed(xyz)
+        desc = desc + torch.cat([self.role[0].expand(b, 1, -1), self.role[1].expand(b, 1, -1)])
+        sq_dist = torch.cdist(xyz, xyz).square()  # within each worm, shared by all layers
+        for block in self.blocks:
+            desc = block(desc, sq_dist, mask)
+        moved = xyz + self.displace(desc)
+        feats = self.project(desc)
+        u, v = feats[:b, :m], feats[b:, :n]
+        p, q = moved[:b, :m], moved[b:, :n]
+        logits = torch.einsum("bnd,bmd->bnm", v, u) / math.sqrt(u.shape[-1])
+        logits = logits - self.log_alpha.exp() * torch.cdist(q, p).square()
+        logits = logits.masked_fill(~template_mask[:, None, :], float("-inf"))
+        no_match = self.no_match(desc[b:, :n])
+        return torch.cat([logits, no_match], dim=-1).log_softmax(dim=-1)
+
+
+def _pad(x: torch.Tensor, size: int) -> torch.Tensor:
+    if x.shape[1] == size:
+        return x
+    pad = [0, 0] * (x.dim() - 2) + [0, size - x.shape[1]]
+    return F.pad(x, pad)
+
+
+def matching_loss(log_probs, target, negative=None, entropy_weight=0.0):
+    """Cross-entropy toward each test neuron's template index (M = "no match", -1 = ignore).
+
+    ``negative`` marks pairs shown in a wrong orientation: every neuron's target is "no match",
+    which teaches the model to be unconfident when the worms are not aligned.
+    """
+    m = log_probs.shape[-1] - 1
+    target = target.clone()
+    if negative is not None:
+        target[negative] = torch.where(target[negative] >= 0, m, target[negative])
+    valid = target >= 0
+    if not valid.any():
+        return log_probs.sum() * 0.0
+    picked = log_probs.gather(-1, target.clamp(min=0)[..., None])[..., 0]
+    return -(picked[valid]).mean()
+
+
+# ----------------------------------------------------------------------------------------------
+# Saving and loading: safetensors + JSON, never pickle.
+
+def save_model(model: CorrespondenceModel, path: str | Path, card: dict | None = None) -> None:
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    save_file({k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}, str(tmp))
+    tmp.replace(path.with_suffix(".safetensors"))
+    meta = {"config": model.config, **(card or {})}
+    json_tmp = path.with_suffix(".json.tmp")
+    json_tmp.write_text(json.dumps(meta, indent=2))
+    json_tmp.replace(path.with_suffix(".json"))
+
+
+def load_model(path: str | Path) -> CorrespondenceModel:
+    """Load ``path.safetensors`` with its ``path.json`` config; refuse anything that does not fit."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    path = Path(path)
+    weights, config_path = path.with_suffix(".safetensors"), path.with_suffix(".json")
+    for p in (weights, config_path):
+        if not p.exists():
+            raise ModelError(f"{p}: model file missing")
+    try:
+        meta = json.loads(config_path.read_text())
+        config = meta["config"]
+        model = CorrespondenceModel(config)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ModelError(f"{config_path}: not a valid model configuration ({exc})") from None
+    try:
+        state = load_file(str(weights))
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise ModelError(f"{weights}: not a valid safetensors file ({str(exc).splitlines()[0]})") from None
+    try:
+        model.load_state_dict(state, strict=True)
+    except RuntimeError:
+        raise ModelError(f"{weights}: the weights do not fit the configuration in {config_path.name}") from None
+    model.eval()
+    return model

@@ -1,0 +1,263 @@
+"""Training: real cross-worm pairs of the annotated corpus mixed with synthetic pairs.
+
+Real pairs carry true biological variability (names give the correspondence; unnamed neurons
+are ignored or count as unmatched). Synthetic pairs (:mod:`napari_fdlc.simulate`) add
+deformations the corpus lacks. Every pair is put in the canonical frame exactly as at inference;
+the true orientation (one of 8) is found from the names. Three kinds of examples:
+
+* coarse: the test in its true orientation — what the first inference pass sees;
+* aligned: the test affinely aligned on the true matches, then perturbed a little — what the
+  refinement passes see;
+* negative: the test in a wrong orientation, every target "no match" — this is what lets the
+  model's willingness to match pick the orientation at inference (see ``docs/model_card.md``).
+
+Validation runs the real inference path (:class:`napari_fdlc.identify.Identifier`) per lab.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .corpus import LABS, Worm, load_corpus
+from .geometry import ORIENTATIONS, apply_affine, canonical_frame, fit_affine, orientation_cost
+from .simulate import SimulationParams, simulate_worm
+from .table import NeuronTable
+
+
+@dataclass
+class TrainConfig:
+    corpus: str | None = None
+    train_labs: tuple[str, ...] = LABS
+    val_labs: tuple[str, ...] = LABS
+    val_worms_per_lab: int = 2  # worms of each training lab kept out for validation
+    steps: int = 3000
+    batch_size: int = 16
+    lr: float = 5e-4
+    weight_decay: float = 1e-4
+    synthetic_fraction: float = 0.25
+    aligned_fraction: float = 0.35
+    negative_fraction: float = 0.15
+    seed: int = 0
+    eval_every: int = 250
+    val_pairs_per_lab: int = 24
+    time_limit_min: float | None = None
+    threads: int | None = None
+    device: str | None = None
+    model: dict = field(default_factory=dict)
+    out: str = "runs/model"
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+# Training-time simulator: the published magnitudes, except a smaller transverse roll — the
+# canonical frame plus the 180° flips already cover which side the worm lies on, and a ±81°
+# roll would show the model poses that the corpus (worms lie on their side) never has.
+TRAIN_SIM = SimulationParams(transverse_rotation=0.15 * np.pi)
+
+
+def _augment(table: NeuronTable, rng: np.random.Generator) -> NeuronTable:
+    """Field-of-view crop along the body axis, drops, noise, scale: what differs between labs."""
+    canon, _, _ = canonical_frame(table.xyz)
+    keep = np.ones(len(table), bool)
+    if rng.random() < 0.4:
+        x = canon[:, 0]
+        lo, hi = np.quantile(x, [rng.uniform(0, 0.3), 1 - rng.uniform(0, 0.3)])
+        keep &= (x >= lo) & (x <= hi)
+    keep &= rng.random(len(table)) >= rng.uniform(0, 0.15)
+    if keep.sum() < 8:
+        keep[:] = True
+    t = table.subset(np.flatnonzero(keep))
+    xyz = t.xyz * (1 + rng.uniform(-0.08, 0.08, 3)) + rng.normal(0, 0.4, t.xyz.shape)
+    return NeuronTable(xyz, t.colours, t.labels, t.label_conf, source=t.source)
+
+
+def _targets(template: NeuronTable, test: NeuronTable) -> np.ndarray:
+    """Template index per test neuron; M = no match; -1 = unknown (ignored by the loss)."""
+    m = len(template)
+    index = {n: i for i, n in enumerate(template.labels) if n}
+    template_complete = (template.labels == "").mean() < 0.1
+    target = np.full(len(test), -1, dtype=np.int64)
+    for j, name in enumerate(test.labels):
+        if name in index:
+            target[j] = index[name]
+        elif name and template_complete:
+            target[j] = m  # a named neuron the (fully named) template does not have
+    return target
+
+
+def make_example(template: NeuronTable, test: NeuronTable, target: np.ndarray, rng, cfg: TrainConfig):
+    """Canonical-frame coordinates for one training pair, or None when too few matches."""
+    a, _, _ = canonical_frame(template.xyz)
+    b, _, _ = canonical_frame(test.xyz)
+    m = len(template)
+    matched = np.flatnonzero((target >= 0) & (target < m))
+    if len(matched) < 4:
+        return None
+    pairs = np.column_stack([target[matched], matched])
+    true = int(np.argmin(orientation_cost(a, b, pairs)))
+    u = rng.random()
+    negative = False
+    if u < cfg.negative_fraction:
+        wrong = rng.choice([k for k in range(len(ORIENTATIONS)) if k != true])
+        b = b @ ORIENTATIONS[wrong].T
+        negative = True
+    else:
+        b = b @ ORIENTATIONS[true].T
+        if u < cfg.negative_fraction + cfg.aligned_fraction:
+            b = apply_affine(b, fit_affine(b[matched], a[target[matched]]))
+            angle = rng.normal(0, 0.08)
+            c, s = math.cos(angle), math.sin(angle)
+            jitter = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) * (1 + rng.normal(0, 0.03, 3))
+            b = b @ jitter.T + rng.normal(0, 3.0, 3)
+    return a.astype(np.float32), b.astype(np.float32), target, negative
+
+
+def sample_example(worms: list[Worm], rng, cfg: TrainConfig):
+    while True:
+        if rng.random() < cfg.synthetic_fraction:
+            template = worms[rng.integers(len(worms))].table
+            synth = simulate_worm(template, rng, TRAIN_SIM)
+            m = len(template)
+            target = np.where(synth.origin >= 0, synth.origin, m)
+            test = synth.table
+        else:
+            i, j = rng.choice(len(worms), 2, replace=False)
+            template = _augment(worms[i].table, rng)
+            test = _augment(worms[j].table, rng)
+            target = _targets(template, test)
+        example = make_example(template, test, target, rng, cfg)
+        if example is not None:
+            return example
+
+
+def collate(examples, torch):
+    b = len(examples)
+    m = max(len(e[0]) for e in examples)
+    n = max(len(e[1]) for e in examples)
+    a = torch.zeros(b, m, 3)
+    t = torch.zeros(b, n, 3)
+    am = torch.zeros(b, m, dtype=torch.bool)
+    tm = torch.zeros(b, n, dtype=torch.bool)
+    target = torch.full((b, n), -1, dtype=torch.long)
+    negative = torch.zeros(b, dtype=torch.bool)
+    for k, (ea, eb, et, neg) in enumerate(examples):
+        a[k, : len(ea)] = torch.from_numpy(ea)
+        t[k, : len(eb)] = torch.from_numpy(eb)
+        am[k, : len(ea)] = True
+        tm[k, : len(eb)] = True
+        # "no match" is column M of this pair's own template; in the padded batch it is column m.
+        tt = torch.from_numpy(et)
+        tt = torch.where(tt == len(ea), torch.tensor(m), tt)
+        target[k, : len(eb)] = tt
+        negative[k] = neg
+    return a, t, am, tm, target, negative
+
+
+def split_worms(worms: list[Worm], cfg: TrainConfig, rng) -> tuple[list[Worm], dict[str, list[Worm]]]:
+    """Training worms from the training labs; validation worms per lab (held-out labs whole,
+    a few worms of each training lab)."""
+    train, val = [], {}
+    for lab in sorted({w.lab for w in worms}):
+        lab_worms = [w for w in worms if w.lab == lab]
+        if lab in cfg.train_labs:
+            order = rng.permutation(len(lab_worms))
+            held = {int(i) for i in order[: cfg.val_worms_per_lab]} if lab in cfg.val_labs else set()
+            train += [w for k, w in enumerate(lab_worms) if k not in held]
+            if held:
+                val[lab] = [lab_worms[k] for k in sorted(held)] + [w for k, w in enumerate(lab_worms) if k not in held][:4]
+        elif lab in cfg.val_labs:
+            val[lab] = lab_worms
+    return train, val
+
+
+def pair_accuracy(identifier, pairs: list[tuple[NeuronTable, NeuronTable]], use_colour: bool = False) -> dict:
+    """Top-1 (assignment) and top-3 on test neurons whose name the template also has."""
+    hit1 = hit3 = total = 0
+    for template, test in pairs:
+        result = identifier.label(test, [template], use_colour=use_colour)
+        names = set(template.names)
+        cand, _ = result.candidates(3)
+        for j, truth in enumerate(test.labels):
+            if truth and truth in names:
+                total += 1
+                hit1 += result.auto_id[j] == truth
+                hit3 += truth in cand[j]
+    return {"top1": hit1 / max(total, 1), "top3": hit3 / max(total, 1), "n": total}
+
+
+def validation_pairs(val: dict[str, list[Worm]], per_lab: int, rng) -> dict[str, list]:
+    out = {}
+    for lab, worms in val.items():
+        pairs = [(a.table, b.table) for a in worms for b in worms if a is not b]
+        idx = rng.permutation(len(pairs))[:per_lab]
+        out[lab] = [pairs[i] for i in idx]
+    return out
+
+
+def train(cfg: TrainConfig, log=print) -> dict:
+    import torch
+
+    from .identify import Identifier, InferenceSettings
+    from .model import CorrespondenceModel, matching_loss, save_model
+
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    device = cfg.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    worms = load_corpus(cfg.corpus)
+    train_worms, val_worms = split_worms(worms, cfg, rng)
+    val_pairs = validation_pairs(val_worms, cfg.val_pairs_per_lab, np.random.default_rng(cfg.seed + 1))
+    log(f"training on {len(train_worms)} worms of {', '.join(cfg.train_labs)}; validating on "
+        + ", ".join(f"{lab} ({len(p)} pairs)" for lab, p in val_pairs.items()))
+
+    model = CorrespondenceModel(cfg.model).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    warmup = max(1, min(100, cfg.steps // 10))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: min(1.0, (s + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * min(s, cfg.steps) / cfg.steps))
+    )
+    out = Path(cfg.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    start = time.time()
+    best, history, running = -1.0, [], []
+    settings = InferenceSettings(refine_steps=2)
+    for step in range(1, cfg.steps + 1):
+        model.train()
+        batch = collate([sample_example(train_worms, rng, cfg) for _ in range(cfg.batch_size)], torch)
+        a, t, am, tm, target, negative = (x.to(device) for x in batch)
+        log_p = model(a, t, am, tm)
+        loss = matching_loss(log_p, target, negative)
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        running.append(loss.item())
+        elapsed = (time.time() - start) / 60
+        out_of_time = cfg.time_limit_min is not None and elapsed > cfg.time_limit_min
+        if step % cfg.eval_every == 0 or step == cfg.steps or out_of_time:
+            model.eval()
+            identifier = Identifier(model, settings, device)
+            scores = {lab: pair_accuracy(identifier, pairs) for lab, pairs in val_pairs.items()}
+            mean = float(np.mean([s["top1"] for s in scores.values()])) if scores else 0.0
+            entry = {"step": step, "minutes": round(elapsed, 2), "loss": float(np.mean(running)),
+                     "val_top1": {k: round(v["top1"], 4) for k, v in scores.items()}, "mean_top1": round(mean, 4)}
+            history.append(entry)
+            running = []
+            log(json.dumps(entry))
+            if mean > best:
+                best = mean
+                save_model(model, out, {"train_config": cfg.to_json(), "history": history,
+                                        "inference": asdict(settings), "best_step": step})
+        if out_of_time:
+            log(f"time limit of {cfg.time_limit_min} min reached at step {step}")
+            break
+    return {"best_mean_top1": best, "history": history, "minutes": (time.time() - start) / 60}
