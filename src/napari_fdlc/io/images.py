@@ -1,0 +1,569 @@
+"""3D NeuroPAL stacks: one :class:`Stack` type and readers for TIFF, OME-TIFF, NWB and ND2.
+
+Every reader returns the image as C, Z, Y, X with the voxel size in µm (Z, Y, X) and a role per
+channel (``'R'`` mNeptune2.5, ``'G'`` CyOFP1.5, ``'B'`` mTagBFP2, ``'W'`` TagRFP-T, ``'GFP'``
+activity/reporter, ``None`` anything else). Files larger than :data:`LAZY_BYTES` stay on disk as a
+dask array, so napari can show them without loading them whole.
+
+Positions everywhere in the package follow one convention: the centre of voxel ``(z, y, x)``
+(0-based) is at ``(z * dz, y * dy, x * dx)`` µm.
+
+Every problem with the file is raised as an :class:`ImageError` whose message is one line that
+says what to do (the CLI prints it, the napari widget shows it).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from ..errors import FdlcError
+
+ROLES = ("R", "G", "B", "W", "GFP")
+# Files above this size are wrapped lazily (dask) instead of read into memory.
+LAZY_BYTES = 1 << 30
+
+# Fluorophore names as they appear in files, matched case-insensitively (order matters only for
+# readability: no pattern matches another fluorophore's name).
+_ROLE_PATTERNS = (
+    ("R", re.compile(r"neptune|nep|n2\.5", re.I)),
+    ("G", re.compile(r"cyofp|cyo", re.I)),
+    ("B", re.compile(r"bfp", re.I)),
+    ("W", re.compile(r"tagrfp|rfp", re.I)),
+    ("GFP", re.compile(r"gfp|gcamp", re.I)),
+)
+_SKIP_WORDS = {"", "-", "_", "none", "skip", "x", "dic", "other"}
+
+_TIFF_SUFFIXES = (".tif", ".tiff", ".btf", ".tf8", ".ome.tif", ".ome.tiff", ".ome.btf")
+_UNIT_TO_UM = {
+    "um": 1.0, "µm": 1.0, "μm": 1.0, "micron": 1.0, "microns": 1.0, "micrometer": 1.0,
+    "micrometers": 1.0, "micrometre": 1.0, "micrometres": 1.0, "\\u00b5m": 1.0,
+    "nm": 1e-3, "nanometer": 1e-3, "nanometers": 1e-3,
+    "mm": 1e3, "millimeter": 1e3, "millimeters": 1e3,
+    "cm": 1e4, "m": 1e6, "meter": 1e6, "meters": 1e6,
+}
+
+
+class ImageError(FdlcError, ValueError):
+    """An image file (or image parameters) that cannot be used."""
+
+
+@dataclass
+class Stack:
+    """One 3D multichannel volume.
+
+    ``data`` is C, Z, Y, X (numpy or dask); ``voxel_size_zyx`` in µm; ``channel_roles`` one entry
+    per channel from :data:`ROLES` or ``None``; ``channel_names`` as written in the file.
+    """
+
+    data: Any
+    voxel_size_zyx: tuple[float, float, float]
+    channel_roles: list[str | None]
+    source: str = "<memory>"
+    channel_names: list[str] | None = None
+
+    def __post_init__(self) -> None:
+        if getattr(self.data, "ndim", None) != 4:
+            raise ImageError(f"{self.source}: a stack must be C, Z, Y, X (got {getattr(self.data, 'shape', '?')})")
+        self.voxel_size_zyx = _check_voxel_size(self.voxel_size_zyx, self.source)
+        self.channel_roles = list(self.channel_roles)
+        if len(self.channel_roles) != self.data.shape[0]:
+            raise ImageError(
+                f"{self.source}: {len(self.channel_roles)} channel roles for {self.data.shape[0]} channels"
+            )
+        if self.channel_names is None:
+            self.channel_names = [r or f"channel {i}" for i, r in enumerate(self.channel_roles)]
+
+    @property
+    def shape_zyx(self) -> tuple[int, int, int]:
+        return tuple(int(s) for s in self.data.shape[1:])
+
+    @property
+    def n_channels(self) -> int:
+        return int(self.data.shape[0])
+
+    @property
+    def is_lazy(self) -> bool:
+        return not isinstance(self.data, np.ndarray)
+
+    def role_index(self, role: str) -> int | None:
+        """Index of the channel playing ``role`` ('R', 'G', 'B', 'W', 'GFP'), or None."""
+        return self.channel_roles.index(role) if role in self.channel_roles else None
+
+    def channel(self, key: str | int) -> np.ndarray:
+        """One channel as an in-memory Z, Y, X numpy array (by role or index)."""
+        index = self.role_index(key) if isinstance(key, str) else int(key)
+        if index is None:
+            raise ImageError(f"{self.source}: no {key} channel (roles: {self.channel_roles})")
+        return np.asarray(self.data[index])
+
+    def extent_um(self) -> np.ndarray:
+        """Size of the volume in µm, Z, Y, X."""
+        return np.asarray(self.shape_zyx) * np.asarray(self.voxel_size_zyx)
+
+
+# ---------------------------------------------------------------------------------------------
+# Channel roles
+
+
+def role_from_name(name: str | None) -> str | None:
+    """Channel role from a fluorophore / channel name ('mNeptune2.5' -> 'R'), None when unknown."""
+    if not name:
+        return None
+    text = str(name).strip()
+    upper = text.upper()
+    if upper in ROLES:
+        return upper
+    for role, pattern in _ROLE_PATTERNS:
+        if pattern.search(text):
+            return role
+    return None
+
+
+def parse_channel_roles(channels: Sequence[str | None], n_channels: int, source: str) -> list[str | None]:
+    """User-given roles (``['R', 'G', 'B', 'W']``, fluorophore names or '-' to skip) -> roles."""
+    channels = list(channels)
+    if len(channels) != n_channels:
+        raise ImageError(
+            f"{source}: {len(channels)} channel role(s) given ({' '.join(map(str, channels))}) "
+            f"but the image has {n_channels} channel(s); give one role per channel, '-' for a channel to ignore"
+        )
+    roles: list[str | None] = []
+    for c in channels:
+        if c is None or str(c).strip().lower() in _SKIP_WORDS:
+            roles.append(None)
+            continue
+        role = role_from_name(c)
+        if role is None:
+            raise ImageError(
+                f"{source}: unknown channel role '{c}'; use R, G, B, W, GFP or '-' (or a fluorophore name)"
+            )
+        roles.append(role)
+    _check_unique_roles(roles, source)
+    return roles
+
+
+def roles_from_names(names: Sequence[str | None]) -> list[str | None]:
+    """Roles guessed from channel names; a role claimed twice is dropped (ambiguous)."""
+    roles = [role_from_name(n) for n in names]
+    for role in set(r for r in roles if r):
+        if roles.count(role) > 1:
+            roles = [None if r == role else r for r in roles]
+    return roles
+
+
+def _check_unique_roles(roles: Sequence[str | None], source: str) -> None:
+    seen = [r for r in roles if r]
+    dup = sorted({r for r in seen if seen.count(r) > 1})
+    if dup:
+        raise ImageError(f"{source}: channel role(s) {', '.join(dup)} given more than once; give each role once")
+
+
+def _check_voxel_size(voxel_size, source: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(v) for v in voxel_size)
+    except (TypeError, ValueError):
+        raise ImageError(f"{source}: voxel size must be three numbers Z Y X in µm (got {voxel_size!r})") from None
+    if len(values) != 3 or not all(np.isfinite(values)) or min(values) <= 0:
+        raise ImageError(f"{source}: voxel size must be three positive numbers Z Y X in µm (got {voxel_size!r})")
+    return values  # type: ignore[return-value]
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading
+
+
+def read_stack(
+    path: str | os.PathLike,
+    voxel_size: Sequence[float] | None = None,
+    channels: Sequence[str | None] | None = None,
+    axes: str | None = None,
+) -> Stack:
+    """Read a TIFF / OME-TIFF / ImageJ TIFF, NWB (NeuroPAL layout) or ND2 stack.
+
+    ``voxel_size`` (Z, Y, X µm) and ``channels`` (one role per channel) override what the file
+    says; ``axes`` (e.g. ``'CZYX'``) names the axes of a TIFF that does not record them.
+    """
+    path = Path(path)
+    source = str(path)
+    if not path.exists():
+        raise ImageError(f"{source}: no such file")
+    if path.is_dir():
+        raise ImageError(f"{source}: is a folder; give an image file (TIFF, OME-TIFF, NWB or ND2)")
+    if path.stat().st_size == 0:
+        raise ImageError(f"{source}: the file is empty")
+    kind = _sniff(path)
+    if kind == "tiff":
+        return read_tiff(path, voxel_size=voxel_size, channels=channels, axes=axes)
+    if kind == "nwb":
+        from .nwb import read_nwb
+
+        return read_nwb(path, voxel_size=voxel_size, channels=channels)
+    if kind == "nd2":
+        return read_nd2(path, voxel_size=voxel_size, channels=channels)
+    raise ImageError(f"{source}: not a supported image file; use TIFF, OME-TIFF, NWB (.nwb) or ND2 (.nd2)")
+
+
+def _sniff(path: Path) -> str | None:
+    """File kind from the first bytes (reliable) and then the suffix (for truncated headers)."""
+    with open(path, "rb") as fh:
+        head = fh.read(8)
+    if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+        return "tiff"
+    if head == b"\x89HDF\r\n\x1a\n":
+        return "nwb"
+    if head[:4] in (b"\xda\xce\xbe\x0a", b"\x00\x00\x00\x0c"):  # ND2 chunk magic / JPEG2000 legacy ND2
+        return "nd2"
+    name = path.name.lower()
+    if name.endswith(_TIFF_SUFFIXES):
+        return "tiff"
+    if name.endswith((".nwb", ".h5", ".hdf5")):
+        return "nwb"
+    if name.endswith(".nd2"):
+        return "nd2"
+    return None
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def finish_stack(
+    data,
+    axes: str,
+    source: str,
+    voxel_size_zyx: Sequence[float | None] | None,
+    names: Sequence[str | None] | None,
+    user_voxel_size: Sequence[float] | None = None,
+    user_channels: Sequence[str | None] | None = None,
+    roles: Sequence[str | None] | None = None,
+) -> Stack:
+    """Bring ``data`` with ``axes`` (letters T, Z, C, Y, X, S, ...) to C, Z, Y, X and validate.
+
+    ``voxel_size_zyx`` and ``names`` are what the file says (entries may be None); the user's
+    values win. ``roles`` are roles the file states directly (NWB ``RGBW_channels``).
+    """
+    axes = axes.upper()
+    if len(axes) != data.ndim:
+        raise ImageError(f"{source}: axes '{axes}' do not fit an image with {data.ndim} dimensions")
+    # Singleton axes we do not use (a time series of one, one position, one sample) go away.
+    index = tuple(0 if (a not in "CZYX" and data.shape[i] == 1) else slice(None) for i, a in enumerate(axes))
+    if any(isinstance(i, int) for i in index):
+        data = data[index]
+        axes = "".join(a for a, i in zip(axes, index) if not isinstance(i, int))
+    if "S" in axes:  # RGB(A) samples are channels when the file has no channel axis
+        if "C" in axes:
+            raise ImageError(f"{source}: both channels and RGB samples (axes {axes}); export one channel axis")
+        axes = axes.replace("S", "C")
+    if "T" in axes:
+        n = data.shape[axes.index("T")]
+        raise ImageError(f"{source}: {n} time points; fdlc reads one volume, export a single time point")
+    if "Z" not in axes:
+        raise ImageError(f"{source}: a 2D image (axes {axes}); fdlc needs a 3D stack with several Z planes")
+    unknown = [a for a in axes if a not in "CZYX"]
+    if unknown or len(set(axes)) != len(axes) or "Y" not in axes or "X" not in axes:
+        raise ImageError(
+            f"{source}: unknown image axes '{axes}'; give them explicitly, e.g. axes='CZYX' (--axes CZYX)"
+        )
+    if "C" not in axes:
+        data = data[None]
+        axes = "C" + axes
+    data = data.transpose([axes.index(a) for a in "CZYX"])
+    n_channels, nz = int(data.shape[0]), int(data.shape[1])
+    if nz < 2:
+        raise ImageError(f"{source}: a 2D image (one Z plane); fdlc needs a 3D stack with several Z planes")
+    if min(data.shape[2:]) < 2:
+        raise ImageError(f"{source}: image of shape {tuple(data.shape)} (C, Z, Y, X) is too small")
+    if not (np.issubdtype(data.dtype, np.integer) or np.issubdtype(data.dtype, np.floating)):
+        raise ImageError(f"{source}: pixel type {data.dtype} is not supported; export integer or float pixels")
+
+    if user_voxel_size is not None:
+        voxel = _check_voxel_size(user_voxel_size, source)
+    else:
+        if voxel_size_zyx is None or any(v is None for v in voxel_size_zyx):
+            missing = "" if voxel_size_zyx is None else " ".join(
+                a for a, v in zip("ZYX", voxel_size_zyx) if v is None
+            )
+            raise ImageError(
+                f"{source}: the file does not say the voxel size{' in ' + missing if missing else ''}; "
+                "give it in µm as --voxel-size Z Y X (voxel_size=(z, y, x))"
+            )
+        voxel = _check_voxel_size(voxel_size_zyx, source)
+
+    names = list(names) if names is not None and len(names) == n_channels else None
+    if user_channels is not None:
+        channel_roles = parse_channel_roles(user_channels, n_channels, source)
+    elif roles is not None:
+        channel_roles = list(roles)
+        if names is not None:  # fill channels the file did not type (e.g. GFP) from their names
+            guessed = roles_from_names(names)
+            channel_roles = [r or (g if g not in channel_roles else None) for r, g in zip(channel_roles, guessed)]
+    elif names is not None:
+        channel_roles = roles_from_names(names)
+    else:
+        channel_roles = [None] * n_channels
+    return Stack(data, voxel, channel_roles, source, names)
+
+
+# ----- TIFF ----------------------------------------------------------------------------------
+
+
+def read_tiff(
+    path: str | os.PathLike,
+    voxel_size: Sequence[float] | None = None,
+    channels: Sequence[str | None] | None = None,
+    axes: str | None = None,
+) -> Stack:
+    """TIFF, OME-TIFF or ImageJ hyperstack (tifffile)."""
+    import tifffile
+
+    source = str(path)
+    try:
+        tif = tifffile.TiffFile(path)
+    except Exception as exc:  # tifffile raises many types for damaged files
+        raise ImageError(f"{source}: not a readable TIFF file ({_first_line(exc)})") from None
+    try:
+        if not tif.series:
+            raise ImageError(f"{source}: the TIFF holds no image")
+        series = tif.series[0]
+        file_axes = series.axes
+        shape = tuple(series.shape)
+        _check_tiff_complete(tif, series, source)
+        voxel, names = _tiff_metadata(tif)
+        nbytes = int(np.prod(shape)) * np.dtype(series.dtype).itemsize
+        if nbytes > LAZY_BYTES:
+            data = _lazy_tiff(tif, series)
+        else:
+            try:
+                data = series.asarray()
+            except Exception as exc:
+                raise ImageError(f"{source}: the TIFF image data cannot be read ({_first_line(exc)})") from None
+            tif.close()
+    except BaseException:
+        tif.close()
+        raise
+    if axes is not None:
+        axes = axes.upper()
+        if len(axes) != data.ndim:
+            raise ImageError(
+                f"{source}: axes '{axes}' given for an image with {data.ndim} dimensions {tuple(data.shape)}"
+            )
+        file_axes = axes
+    elif re.search(r"[QI]", file_axes):
+        # Plain TIFFs do not record which axis is Z and which is C; guessing would mix them up.
+        unknown = [n for a, n in zip(file_axes, data.shape) if a in "QI" and n > 1]
+        if unknown:
+            raise ImageError(
+                f"{source}: the TIFF does not say its axes (shape {tuple(data.shape)}); "
+                "give them, e.g. --axes ZCYX (axes='ZCYX')"
+            )
+    return finish_stack(data, file_axes, source, voxel, names, voxel_size, channels)
+
+
+def _check_tiff_complete(tif, series, source: str) -> None:
+    """A truncated TIFF still parses; catch image data that points past the end of the file."""
+    size = tif.filehandle.size
+    for page in series.pages:
+        if page is None:
+            raise ImageError(f"{source}: the TIFF is incomplete (missing pages); re-export the file")
+        offsets = getattr(page, "dataoffsets", ()) or ()
+        counts = getattr(page, "databytecounts", ()) or ()
+        if offsets and counts and max(o + c for o, c in zip(offsets, counts)) > size:
+            raise ImageError(f"{source}: the TIFF is truncated (image data past the end of the file); re-export it")
+
+
+def _lazy_tiff(tif, series):
+    """Dask array reading one TIFF page per chunk (tifffile's zarr store needs zarr, not a dependency)."""
+    import dask
+    import dask.array as da
+
+    pages = series.pages
+    lock = threading.Lock()
+    page_shape = tuple(pages[0].shape)
+    lead = tuple(series.shape[: len(series.shape) - len(page_shape)])
+
+    def load(i: int) -> np.ndarray:
+        with lock:  # one file handle shared by all chunks
+            return pages[i].asarray()
+
+    blocks = [
+        da.from_delayed(dask.delayed(load)(i), shape=page_shape, dtype=series.dtype) for i in range(len(pages))
+    ]
+    # ``tif`` stays referenced by ``pages`` (and so stays open) for as long as the array lives.
+    return da.stack(blocks).reshape(lead + page_shape)
+
+
+def _to_um(value, unit) -> float | None:
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        return None
+    if not np.isfinite(value) or value <= 0:
+        return None
+    if unit is None:
+        return value  # OME's default unit is µm
+    factor = _UNIT_TO_UM.get(str(unit).strip().lower().replace("\\u00b5", "µ"))
+    return None if factor is None else value * factor
+
+
+def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None]:
+    """Voxel size (Z, Y, X µm, None where unknown) and channel names from OME or ImageJ metadata."""
+    import tifffile
+
+    if tif.is_ome and tif.ome_metadata:
+        try:
+            ome = tifffile.xml2dict(tif.ome_metadata)["OME"]
+            image = ome["Image"][0] if isinstance(ome["Image"], list) else ome["Image"]
+            pixels = image["Pixels"]
+        except Exception:
+            pixels = None
+        if pixels is not None:
+            voxel = [
+                _to_um(pixels.get(f"PhysicalSize{a}"), pixels.get(f"PhysicalSize{a}Unit")) if f"PhysicalSize{a}" in pixels else None
+                for a in "ZYX"
+            ]
+            chans = pixels.get("Channel", [])
+            chans = chans if isinstance(chans, list) else [chans]
+            names = [c.get("Name") or c.get("Fluor") if isinstance(c, dict) else None for c in chans] or None
+            if names is not None and not any(names):
+                names = None
+            return voxel, names
+    if tif.is_imagej and tif.imagej_metadata is not None:
+        meta = tif.imagej_metadata
+        unit = meta.get("unit")
+        page = tif.pages.first
+        xres = yres = None
+        try:
+            xres, yres = page.get_resolution()
+        except Exception:
+            pass
+        known_unit = unit is not None and _to_um(1.0, unit) is not None
+        x = _to_um(1.0 / xres, unit) if known_unit and xres and xres != 1 else None
+        y = _to_um(1.0 / yres, unit) if known_unit and yres and yres != 1 else None
+        z = _to_um(meta.get("spacing"), unit) if known_unit and meta.get("spacing") else None
+        names = None
+        labels = meta.get("Labels")
+        n_c = int(meta.get("channels", 1) or 1)
+        if isinstance(labels, list) and n_c > 1 and len(labels) >= n_c:
+            names = list(labels[:n_c])  # ImageJ stores one label per plane, channel fastest
+        return [z, y, x], names
+    return None, None
+
+
+# ----- ND2 -----------------------------------------------------------------------------------
+
+
+def read_nd2(
+    path: str | os.PathLike,
+    voxel_size: Sequence[float] | None = None,
+    channels: Sequence[str | None] | None = None,
+    opener: Callable[[str], Any] | None = None,
+) -> Stack:
+    """Nikon ND2 through the ``nd2`` package.
+
+    ``opener`` (default ``nd2.ND2File``) can be any callable returning an object with ND2File's
+    interface (``sizes``, ``voxel_size()``, ``metadata.channels``, ``asarray()``/``to_dask()``,
+    ``close()``): nd2 files cannot be written, so the tests inject one.
+    """
+    source = str(path)
+    if opener is None:
+        import nd2
+
+        opener = nd2.ND2File
+    try:
+        f = opener(str(path))
+    except Exception as exc:
+        raise ImageError(f"{source}: not a readable ND2 file ({_first_line(exc)})") from None
+    try:
+        sizes = dict(f.sizes)
+        axes = "".join(k.upper()[0] for k in sizes)
+        shape = tuple(int(v) for v in sizes.values())
+        try:
+            vs = f.voxel_size()
+            voxel = [float(vs.z), float(vs.y), float(vs.x)]
+            # nd2 reports 1.0 for an uncalibrated axis; a real NeuroPAL z step is never exactly 1 µm
+            # together with 1 µm pixels, so treat all-ones as "unknown".
+            if voxel == [1.0, 1.0, 1.0]:
+                voxel = None
+        except Exception:
+            voxel = None
+        names = _nd2_channel_names(f)
+        itemsize = np.dtype(getattr(f, "dtype", np.uint16)).itemsize
+        if int(np.prod(shape)) * itemsize > LAZY_BYTES:
+            data = f.to_dask()
+            lazy = True
+        else:
+            data = np.asarray(f.asarray())
+            lazy = False
+    except FdlcError:
+        f.close()
+        raise
+    except Exception as exc:
+        f.close()
+        raise ImageError(f"{source}: the ND2 file cannot be read ({_first_line(exc)})") from None
+    if not lazy:
+        f.close()
+    if tuple(data.shape) != shape:
+        raise ImageError(f"{source}: ND2 data shape {tuple(data.shape)} does not match its sizes {sizes}")
+    return finish_stack(data, axes, source, voxel, names, voxel_size, channels)
+
+
+def _nd2_channel_names(f) -> list[str] | None:
+    try:
+        chans = f.metadata.channels or []
+        names = [c.channel.name for c in chans]
+        return names or None
+    except Exception:
+        return None
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing (test fixtures, the bundled sample, exports)
+
+
+def write_tiff(
+    path: str | os.PathLike,
+    stack: Stack,
+    ome: bool = True,
+    compression: str | None = "zlib",
+    channel_names: Sequence[str] | None = None,
+) -> None:
+    """Write a stack as OME-TIFF (``ome=True``) or as an ImageJ hyperstack, atomically.
+
+    ImageJ files carry voxel size via resolution + ``spacing``; they are written uncompressed
+    because ImageJ itself cannot open compressed hyperstacks.
+    """
+    import tifffile
+
+    from ..errors import atomic_write
+
+    data = np.asarray(stack.data)
+    names = list(channel_names or stack.channel_names or [r or "" for r in stack.channel_roles])
+    z, y, x = stack.voxel_size_zyx
+    buffer = io.BytesIO()  # tifffile wants a named file or a seekable buffer, not a bare fd
+    if ome:
+        metadata = {
+            "axes": "CZYX",
+            "PhysicalSizeZ": z, "PhysicalSizeZUnit": "µm",
+            "PhysicalSizeY": y, "PhysicalSizeYUnit": "µm",
+            "PhysicalSizeX": x, "PhysicalSizeXUnit": "µm",
+            "Channel": {"Name": names},
+        }
+        tifffile.imwrite(buffer, data, ome=True, metadata=metadata, compression=compression)
+    else:
+        hyper = np.ascontiguousarray(data.transpose(1, 0, 2, 3))  # ImageJ wants Z, C, Y, X
+        labels = [names[c] for _ in range(hyper.shape[0]) for c in range(hyper.shape[1])]
+        tifffile.imwrite(
+            buffer, hyper, imagej=True, resolution=(1.0 / x, 1.0 / y),
+            metadata={"axes": "ZCYX", "spacing": z, "unit": "um", "Labels": labels},
+        )
+    with atomic_write(path, "wb") as out:
+        out.write(buffer.getbuffer())
