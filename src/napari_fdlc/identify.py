@@ -38,6 +38,7 @@ class InferenceSettings:
     colour_sigma: float = 0.6  # width of the colour likelihood in normal-score units
     temperature: float = 1.0  # divides the log-probabilities (calibration, fitted on training labs)
     chirality_search: bool = True  # also try the z-mirrored recording convention
+    no_match_weight: float = 0.2  # see match.assign
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "InferenceSettings":
@@ -150,4 +151,5 @@ class Identifier:
             per_template.append((probs[:, :-1], template.labels))
             infos.append(info)
         names, probs = name_probabilities(per_template)
-        return make_labelling(names, probs, fixed, {"templates": infos, "colour": use_colour})
+        info = {"templates": infos, "colour": use_colour}
+        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight)

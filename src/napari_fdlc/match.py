@@ -61,12 +61,14 @@ def name_probabilities(
     return vocabulary, total / len(per_template)
 
 
-def assign(probs: np.ndarray, fixed: dict[int, int] | None = None) -> np.ndarray:
+def assign(probs: np.ndarray, fixed: dict[int, int] | None = None, no_match_weight: float = 1.0) -> np.ndarray:
     """One name index per test neuron (-1 = no named match), maximising the summed
     log-probability, each name used at most once.
 
     ``fixed`` maps test rows to name columns the user decided; those are kept and their names
-    are taken out of play for everyone else.
+    are taken out of play for everyone else. ``no_match_weight`` < 1 makes leaving a neuron
+    unnamed less attractive than its probability alone says: a diffuse but useful best guess
+    (shown with its low confidence) is worth more to a user than an empty cell.
     """
     n, v = probs.shape
     result = np.full(n, -1, dtype=int)
@@ -82,7 +84,7 @@ def assign(probs: np.ndarray, fixed: dict[int, int] | None = None) -> np.ndarray
     # One private "no named match" column per row, so any number of rows may stay unmatched.
     cost = np.full((len(rows), len(cols) + len(rows)), np.inf)
     cost[:, : len(cols)] = -np.log(np.clip(p, _TINY, 1.0))
-    cost[np.arange(len(rows)), len(cols) + np.arange(len(rows))] = -np.log(no_match)
+    cost[np.arange(len(rows)), len(cols) + np.arange(len(rows))] = -np.log(no_match * no_match_weight)
     cost[~np.isfinite(cost)] = 1e9
     r, c = linear_sum_assignment(cost)
     for row, col in zip(r, c):
@@ -100,13 +102,19 @@ def top_k(probs: np.ndarray, names: list[str], k: int) -> tuple[list[list[str]],
     return cand, cand_p
 
 
-def make_labelling(names: list[str], probs: np.ndarray, fixed: dict[int, str] | None = None, info: dict | None = None) -> Labelling:
+def make_labelling(
+    names: list[str],
+    probs: np.ndarray,
+    fixed: dict[int, str] | None = None,
+    info: dict | None = None,
+    no_match_weight: float = 1.0,
+) -> Labelling:
     """Assign names and fill a :class:`Labelling`. ``fixed`` maps rows to user-given names;
     a user name the vocabulary does not know is kept for that row without a column."""
     column = {n: i for i, n in enumerate(names)}
     fixed = fixed or {}
     fixed_cols = {row: column[name] for row, name in fixed.items() if name in column}
-    choice = assign(probs, fixed_cols)
+    choice = assign(probs, fixed_cols, no_match_weight)
     auto_id, auto_conf = [], np.zeros(len(probs))
     no_match = np.clip(1.0 - probs.sum(axis=1), 0.0, 1.0)
     for j, col in enumerate(choice):
