@@ -153,3 +153,33 @@ class Identifier:
         names, probs = name_probabilities(per_template)
         info = {"templates": infos, "colour": use_colour}
         return make_labelling(names, probs, fixed, info, self.settings.no_match_weight)
+
+
+_DEFAULT: dict = {}
+
+
+def default_identifier() -> Identifier:
+    """The shipped model, loaded once per process."""
+    if "identifier" not in _DEFAULT:
+        _DEFAULT["identifier"] = Identifier.load()
+    return _DEFAULT["identifier"]
+
+
+def label_neurons(
+    test: NeuronTable,
+    templates: list[NeuronTable] | None = None,
+    use_colour: bool = True,
+    fixed: dict[int, str] | None = None,
+    identifier: Identifier | None = None,
+) -> Labelling:
+    """Name the neurons of ``test``. Without templates the built-in reference panel is used
+    (what Auto-label does). ``fixed`` maps row indices to names the user decided: they are kept
+    and their names are not given to anyone else."""
+    from .reference import load_panel
+
+    identifier = identifier or default_identifier()
+    templates = templates if templates else load_panel()
+    for t in templates:
+        if not t.named.any():
+            raise FdlcError(f"{t.source}: the template has no named neuron")
+    return identifier.label(test, templates, use_colour=use_colour, fixed=fixed)
