@@ -1,0 +1,761 @@
+"""Review state of one labelled worm: names, the user's decisions, undo/redo, autosave, export.
+
+This is the Qt-free heart of the napari "Auto-label" widget (the widget only displays a
+:class:`ReviewSession` and forwards clicks and keys to it), so everything a user can do while
+reviewing is testable without a display, and scriptable without napari::
+
+    session = ReviewSession(table, labelling, path=session_file_for("worm.tif"))
+    session.accept(3); session.assign(7, "AVAL"); session.mark_unsure(9); session.undo()
+    session.export("worm_ids.csv")
+
+Rows are the neurons of the table (0-based, in table order). Per row the session keeps
+
+- the automatic answer: ``auto_id`` ('' = no named match), ``auto_conf`` and the top-k
+  candidates ``cand`` / ``cand_p``;
+- the user's decision: ``user_id`` ('' = none), ``user_conf`` (1, 0.5 for unsure, NaN = none)
+  and ``status``: ``auto`` (no decision), ``accepted`` (the user confirmed the automatic name),
+  ``corrected`` (the user gave another name), ``unsure`` (a name marked ``?``, confidence 0.5 as
+  in NeuroPAL_ID).
+
+The *final* name of a neuron is the user's if given, else the automatic one when its confidence
+reaches the threshold and no user decision took that name, else empty. A user decision is never
+overwritten by the machine: re-labelling (:meth:`set_labelling` with the user's names passed as
+``fixed`` to :func:`napari_fdlc.identify.label_neurons`) only replaces automatic columns.
+
+Every edit is undoable, and with a ``path`` every change is written at once (JSON, atomic
+replace), so a killed napari loses nothing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+import pandas as pd
+
+from .errors import FdlcError, atomic_write, warn
+from .match import Labelling
+from .table import COLOUR_CHANNELS, COORDS, UNSURE_CONF, NeuronTable, parse_name, write_neuropal_id, write_table
+
+STATUSES = ("auto", "accepted", "corrected", "unsure")
+K = 3  # candidates kept per neuron
+DEFAULT_THRESHOLD = 0.5
+SESSION_FORMAT = "napari-fdlc review session"
+SESSION_VERSION = 1
+SESSION_SUFFIX = ".fdlc-session.json"
+MAX_HISTORY = 1000
+EXPORT_FORMATS = ("fdlc", "neuropal_id")
+_NAME_OK = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-']*$")
+# Columns the session writes itself: never copied from the table's extra columns.
+REVIEW_COLUMNS = (
+    ("auto_id", "auto_conf")
+    + tuple(f"cand_{k}" for k in range(1, K + 1))
+    + tuple(f"prob_{k}" for k in range(1, K + 1))
+    + ("user_id", "user_conf", "status", "x_px", "y_px", "z_px", "neuron_index")
+)
+
+
+# ---------------------------------------------------------------------------------------------
+# Where sessions live
+
+
+def user_session_dir() -> Path:
+    """The user's data folder for sessions (``$FDLC_SESSION_DIR`` overrides platformdirs)."""
+    env = os.environ.get("FDLC_SESSION_DIR")
+    if env:
+        return Path(env)
+    import platformdirs
+
+    return Path(platformdirs.user_data_dir("napari-fdlc", appauthor=False)) / "sessions"
+
+
+def _package_dir() -> Path:
+    return Path(__file__).resolve().parent
+
+
+def _is_path_key(key: str) -> bool:
+    """A file path, as opposed to a key such as 'sample:neuropal' or '<memory>'."""
+    if key.startswith("<"):
+        return False
+    return not (re.match(r"^[A-Za-z][A-Za-z0-9_+.-]+:", key) and not re.match(r"^[A-Za-z]:[\\/]", key))
+
+
+def _writable_folder(folder: Path) -> bool:
+    try:
+        folder = folder.resolve()
+    except OSError:
+        return False
+    if folder == _package_dir() or _package_dir() in folder.parents:
+        return False  # never write into the installed package (bundled sample, editable installs)
+    return folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)
+
+
+def _user_session_file(key: str) -> Path:
+    resolved = str(Path(key).resolve()) if _is_path_key(key) else key
+    digest = hashlib.sha1(resolved.encode("utf-8")).hexdigest()[:12]
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(key).name if _is_path_key(key) else key).strip("_.") or "image"
+    return user_session_dir() / f"{stem[:60]}-{digest}.json"
+
+
+def session_file_for(image: str | os.PathLike) -> Path:
+    """Where the session of ``image`` (a file path or a key such as ``'sample:neuropal'``) is
+    written: beside the image when its folder is writable, else in :func:`user_session_dir`
+    under a name keyed by the image's absolute path."""
+    key = str(image)
+    if _is_path_key(key):
+        path = Path(key)
+        if _writable_folder(path.parent):
+            return path.parent / (path.name + SESSION_SUFFIX)
+    return _user_session_file(key)
+
+
+def find_session(image: str | os.PathLike) -> Path | None:
+    """The existing session file of ``image`` (beside it first, then the user's data folder)."""
+    key = str(image)
+    candidates = []
+    if _is_path_key(key):
+        path = Path(key)
+        candidates.append(path.parent / (path.name + SESSION_SUFFIX))
+    candidates.append(_user_session_file(key))
+    for c in candidates:
+        if c.is_file():
+            return c
+    return None
+
+
+# ---------------------------------------------------------------------------------------------
+# The session
+
+
+@dataclass
+class _State:
+    """Everything an edit can change (the table is treated as immutable and shared)."""
+
+    table: NeuronTable
+    auto_id: list[str]
+    auto_conf: np.ndarray
+    cand: list[list[str]]
+    cand_p: np.ndarray
+    user_id: list[str]
+    user_conf: np.ndarray
+    status: list[str]
+    order: list[int]
+    labelled: bool
+
+    def copy(self) -> "_State":
+        return _State(
+            self.table, list(self.auto_id), self.auto_conf.copy(), [list(c) for c in self.cand],
+            self.cand_p.copy(), list(self.user_id), self.user_conf.copy(), list(self.status),
+            list(self.order), self.labelled,
+        )
+
+
+@dataclass
+class Edit:
+    """One undoable step: the state before and after, and a one-line description."""
+
+    description: str
+    before: _State
+    after: _State
+    rows: list[int] | None = None  # rows touched (None = all)
+
+
+Listener = Callable[[str, "list[int] | None"], None]
+
+
+class ReviewSession:
+    """Review state of one worm; see the module docstring."""
+
+    def __init__(
+        self,
+        table: NeuronTable,
+        labelling: Labelling | None = None,
+        *,
+        threshold: float = DEFAULT_THRESHOLD,
+        voxel_size_zyx: tuple[float, float, float] | None = None,
+        image: str | None = None,
+        path: str | os.PathLike | None = None,
+        names: Iterable[str] | None = None,
+    ) -> None:
+        n = len(table)
+        self.threshold = _check_threshold(threshold)
+        self.voxel_size_zyx = tuple(float(v) for v in voxel_size_zyx) if voxel_size_zyx is not None else None
+        self.image = image
+        self.path = Path(path) if path is not None else None
+        self.vocabulary: list[str] = sorted(set(names or ()))
+        self.current: int | None = None
+        self.settings: dict = {}  # free-form (e.g. template description, colour on/off)
+        self._undo: list[Edit] = []
+        self._redo: list[Edit] = []
+        self._listeners: list[Listener] = []
+        self.last_save_error: str | None = None
+        self._s = _State(
+            table=table,
+            auto_id=[""] * n,
+            auto_conf=np.zeros(n),
+            cand=[[""] * K for _ in range(n)],
+            cand_p=np.zeros((n, K)),
+            user_id=[""] * n,
+            user_conf=np.full(n, np.nan),
+            status=["auto"] * n,
+            order=list(range(n)),
+            labelled=False,
+        )
+        if labelling is not None:
+            self._apply_labelling(self._s, labelling)
+
+    # ----- read access ------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._s.table)
+
+    @property
+    def table(self) -> NeuronTable:
+        return self._s.table
+
+    @property
+    def labelled(self) -> bool:
+        """True once an automatic labelling has been set."""
+        return self._s.labelled
+
+    @property
+    def auto_id(self) -> list[str]:
+        return list(self._s.auto_id)
+
+    @property
+    def auto_conf(self) -> np.ndarray:
+        return self._s.auto_conf.copy()
+
+    @property
+    def user_id(self) -> list[str]:
+        return list(self._s.user_id)
+
+    @property
+    def user_conf(self) -> np.ndarray:
+        return self._s.user_conf.copy()
+
+    @property
+    def status(self) -> list[str]:
+        return list(self._s.status)
+
+    def candidates(self, i: int) -> list[tuple[str, float]]:
+        """Top-k (name, probability) of row ``i``, most likely first, without empty entries."""
+        i = self._row(i)
+        return [(c, float(p)) for c, p in zip(self._s.cand[i], self._s.cand_p[i]) if c]
+
+    def is_decided(self, i: int) -> bool:
+        return self._s.status[self._row(i)] != "auto"
+
+    def user_names(self) -> dict[str, int]:
+        """name -> row for every user decision."""
+        return {name: i for i, name in enumerate(self._s.user_id) if name}
+
+    def auto_shown(self) -> np.ndarray:
+        """Rows whose automatic name is shown: no user decision, confidence >= threshold, and the
+        name not taken by a user decision elsewhere."""
+        s = self._s
+        taken = set(self.user_names())
+        return np.array(
+            [
+                st == "auto" and bool(a) and c >= self.threshold and a not in taken
+                for a, c, st in zip(s.auto_id, s.auto_conf, s.status)
+            ],
+            dtype=bool,
+        )
+
+    def final_names(self) -> list[str]:
+        """Final name per row (without '?'): the user's, else the shown automatic one, else ''."""
+        shown = self.auto_shown()
+        return [u if st != "auto" else (a if ok else "") for u, a, st, ok in zip(self._s.user_id, self._s.auto_id, self._s.status, shown)]
+
+    def display_names(self) -> list[str]:
+        """Final names as written in a table: 'AVAL?' for an unsure decision."""
+        return [n + "?" if n and st == "unsure" else n for n, st in zip(self.final_names(), self._s.status)]
+
+    def coverage(self) -> float:
+        """Fraction of neurons that carry a final name (0 for an empty session)."""
+        n = len(self)
+        return sum(1 for x in self.final_names() if x) / n if n else 0.0
+
+    def counts(self) -> dict[str, int]:
+        out = {s: 0 for s in STATUSES}
+        for st in self._s.status:
+            out[st] += 1
+        out["hidden"] = int(sum(1 for a, st, ok in zip(self._s.auto_id, self._s.status, self.auto_shown()) if st == "auto" and a and not ok))
+        return out
+
+    def review_order(self) -> list[int]:
+        """Rows ordered by automatic confidence, lowest first (unnamed rows count as 0). The order
+        is fixed when a labelling is set, so that navigation does not jump as decisions are made."""
+        return list(self._s.order)
+
+    def review_confidence(self) -> np.ndarray:
+        s = self._s
+        return np.array([c if a else 0.0 for a, c in zip(s.auto_id, s.auto_conf)])
+
+    # ----- listeners and persistence ------------------------------------------------------------
+    def connect(self, listener: Listener) -> None:
+        """``listener(kind, rows)`` is called after every change; kind is 'edit', 'labelling',
+        'threshold', 'structure', 'current' or 'save_error' (rows None = all rows)."""
+        self._listeners.append(listener)
+
+    def disconnect(self, listener: Listener) -> None:
+        if listener in self._listeners:
+            self._listeners.remove(listener)
+
+    def _emit(self, kind: str, rows: list[int] | None = None) -> None:
+        for listener in list(self._listeners):
+            listener(kind, rows)
+
+    def _changed(self, kind: str, rows: list[int] | None = None) -> None:
+        if kind != "current":
+            self.autosave()
+        self._emit(kind, rows)
+
+    def autosave(self) -> bool:
+        """Write the session to :attr:`path` (if any). If that folder turns out not to be
+        writable, fall back once to the user's data folder. Returns True when written."""
+        if self.path is None:
+            return False
+        try:
+            self.save(self.path)
+            self.last_save_error = None
+            return True
+        except OSError as exc:
+            fallback = _user_session_file(self.image or str(self.path))
+            if fallback != self.path:
+                try:
+                    self.save(fallback)
+                    warn(f"{self.path.parent}: not writable ({exc.strerror}); session saved to {fallback}")
+                    self.path = fallback
+                    self.last_save_error = None
+                    return True
+                except OSError:
+                    pass
+            self.last_save_error = f"{self.path}: the session could not be saved ({exc.strerror or exc})"
+            self._emit("save_error", None)
+            return False
+
+    def save(self, path: str | os.PathLike | None = None) -> Path:
+        """Write the session as JSON (atomic replace)."""
+        path = Path(path) if path is not None else self.path
+        if path is None:
+            raise FdlcError("no session file given")
+        text = json.dumps(self.to_dict(), indent=1, allow_nan=False)
+        with atomic_write(path, "w", encoding="utf-8") as handle:
+            handle.write(text)
+        return path
+
+    def to_dict(self) -> dict:
+        s = self._s
+        t = s.table
+        neurons: dict[str, list] = {c: _floats(t.xyz[:, k]) for k, c in enumerate(COORDS)}
+        for c in COLOUR_CHANNELS:
+            if c in t.colours:
+                neurons[c] = _floats(t.colours[c])
+        neurons["auto_id"] = list(s.auto_id)
+        neurons["auto_conf"] = _floats(s.auto_conf)
+        for k in range(K):
+            neurons[f"cand_{k + 1}"] = [c[k] for c in s.cand]
+            neurons[f"prob_{k + 1}"] = _floats(s.cand_p[:, k])
+        neurons["user_id"] = list(s.user_id)
+        neurons["user_conf"] = _floats(s.user_conf)
+        neurons["status"] = list(s.status)
+        extra = {}
+        for c in t.extra.columns:
+            if str(c) in neurons or str(c) in REVIEW_COLUMNS or str(c) == "label":
+                continue
+            extra[str(c)] = [_json_value(v) for v in t.extra[c].tolist()]
+        return {
+            "format": SESSION_FORMAT,
+            "version": SESSION_VERSION,
+            "saved": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "image": self.image,
+            "voxel_size_zyx": list(self.voxel_size_zyx) if self.voxel_size_zyx else None,
+            "threshold": self.threshold,
+            "labelled": s.labelled,
+            "vocabulary": self.vocabulary,
+            "order": list(s.order),
+            "settings": self.settings,
+            "neurons": neurons,
+            "extra": extra,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "<session>", path: str | os.PathLike | None = None) -> "ReviewSession":
+        if not isinstance(d, dict) or d.get("format") != SESSION_FORMAT:
+            raise FdlcError(f"{source}: not a napari-fdlc session file")
+        if int(d.get("version", 0)) > SESSION_VERSION:
+            raise FdlcError(f"{source}: session written by a newer napari-fdlc (version {d.get('version')}); update the plugin")
+        try:
+            nd = d["neurons"]
+            xyz = np.column_stack([np.asarray(nd[c], dtype=float) for c in COORDS])
+            n = len(xyz)
+            colours = {c: np.asarray(_nan(nd[c]), dtype=float) for c in COLOUR_CHANNELS if c in nd}
+            extra = pd.DataFrame({k: v for k, v in (d.get("extra") or {}).items() if len(v) == n}, index=range(n))
+            table = NeuronTable(xyz, colours, extra=extra, source=source)
+            session = cls(
+                table,
+                threshold=float(d.get("threshold", DEFAULT_THRESHOLD)),
+                voxel_size_zyx=d.get("voxel_size_zyx"),
+                image=d.get("image"),
+                path=path,
+                names=d.get("vocabulary") or (),
+            )
+            s = session._s
+            s.auto_id = [str(x or "") for x in nd["auto_id"]]
+            s.auto_conf = np.nan_to_num(np.asarray(_nan(nd["auto_conf"]), dtype=float))
+            s.cand = [[str(nd[f"cand_{k + 1}"][j] or "") for k in range(K)] for j in range(n)]
+            s.cand_p = np.nan_to_num(np.column_stack([np.asarray(_nan(nd[f"prob_{k + 1}"]), dtype=float) for k in range(K)]))
+            s.user_id = [str(x or "") for x in nd["user_id"]]
+            s.user_conf = np.asarray(_nan(nd["user_conf"]), dtype=float)
+            s.status = [str(x) for x in nd["status"]]
+            s.labelled = bool(d.get("labelled", any(s.auto_id)))
+            order = [int(i) for i in d.get("order") or range(n)]
+            s.order = order if sorted(order) == list(range(n)) else list(range(n))
+            session.settings = dict(d.get("settings") or {})
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise FdlcError(f"{source}: damaged session file ({type(exc).__name__}: {exc})") from None
+        bad = [st for st in s.status if st not in STATUSES]
+        lengths = {len(s.auto_id), len(s.user_id), len(s.status), len(s.user_conf), len(s.auto_conf)}
+        if bad or lengths != {n}:
+            raise FdlcError(f"{source}: damaged session file (inconsistent neuron rows)")
+        return session
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "ReviewSession":
+        """Read a session file; later changes are saved back to the same file."""
+        path = Path(path)
+        try:
+            d = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise FdlcError(f"{path}: no such session file") from None
+        except (OSError, ValueError) as exc:
+            raise FdlcError(f"{path}: unreadable session file ({exc})") from None
+        return cls.from_dict(d, source=str(path), path=path)
+
+    # ----- automatic labelling ------------------------------------------------------------------
+    def fixed(self) -> dict[int, str]:
+        """Row -> name of every user decision: the constraints for re-labelling."""
+        return {i: name for i, name in enumerate(self._s.user_id) if name}
+
+    def _apply_labelling(self, s: _State, labelling: Labelling) -> None:
+        n = len(s.table)
+        if len(labelling.auto_id) != n:
+            raise FdlcError(f"the labelling has {len(labelling.auto_id)} neurons but the table has {n}")
+        cand, cand_p = labelling.candidates(K)
+        keep = {i for i, st in enumerate(s.status) if st != "auto"} if s.labelled else set()
+        for j in range(n):
+            # A decided neuron keeps the machine's earlier answer (the labelling reports the
+            # user's fixed name there), so 'accepted' vs 'corrected' stays meaningful.
+            if j not in keep:
+                s.auto_id[j] = str(labelling.auto_id[j] or "")
+                s.auto_conf[j] = float(labelling.auto_conf[j])
+            s.cand[j] = [str(c or "") for c in cand[j]]
+            s.cand_p[j] = cand_p[j]
+        s.labelled = True
+        conf = np.array([c if a else 0.0 for a, c in zip(s.auto_id, s.auto_conf)])
+        s.order = [int(i) for i in np.argsort(conf, kind="stable")]
+        self.vocabulary = sorted(set(self.vocabulary) | set(labelling.names))
+
+    def set_labelling(self, labelling: Labelling, description: str = "auto-label") -> None:
+        """Replace the automatic columns (undoable). User decisions are kept as they are."""
+        self._commit(description, lambda s: self._apply_labelling(s, labelling), kind="labelling")
+
+    # ----- edits --------------------------------------------------------------------------------
+    def _row(self, i) -> int:
+        try:
+            j = int(i)
+        except (TypeError, ValueError):
+            raise FdlcError(f"neuron {i!r}: give a row number") from None
+        if not 0 <= j < len(self):
+            raise FdlcError(f"neuron {j}: no such row (the layer has {len(self)} neurons, rows 0-{len(self) - 1})")
+        return j
+
+    def _commit(self, description: str, change: Callable[[_State], None], rows=None, kind: str = "edit") -> bool:
+        before = self._s.copy()
+        after = self._s.copy()
+        change(after)
+        if _same(before, after):
+            return False
+        self._s = after
+        self._undo.append(Edit(description, before, after, rows))
+        del self._undo[:-MAX_HISTORY]
+        self._redo.clear()
+        self._changed(kind, rows)
+        return True
+
+    def _check_name(self, name: str, row: int) -> None:
+        if not _NAME_OK.match(name):
+            raise FdlcError(f"'{name}': not a neuron name (letters, digits, '-', '_', '.' only)")
+        holder = self.user_names().get(name)
+        if holder is not None and holder != row:
+            raise FdlcError(f"{name} is already the name of neuron {holder}; clear it there first")
+
+    def _decide(self, i: int, name: str, conf: float, description: str) -> bool:
+        i = self._row(i)
+        self._check_name(name, i)
+        status = "unsure" if conf == UNSURE_CONF else ("accepted" if name == self._s.auto_id[i] else "corrected")
+
+        def change(s: _State) -> None:
+            s.user_id[i] = name
+            s.user_conf[i] = 1.0 if status != "unsure" else UNSURE_CONF
+            s.status[i] = status
+
+        return self._commit(description, change, [i])
+
+    def accept(self, i: int) -> bool:
+        """Confirm the current name of neuron ``i`` (the automatic one, or make an unsure
+        decision sure). Returns False when nothing changed."""
+        i = self._row(i)
+        s = self._s
+        name = s.user_id[i] or s.auto_id[i]
+        if not name:
+            raise FdlcError(f"neuron {i} has no automatic name to accept; pick a candidate or type a name")
+        return self._decide(i, name, 1.0, f"accept {name} for neuron {i}")
+
+    def assign(self, i: int, name: str) -> bool:
+        """Give neuron ``i`` the name ``name`` ('AVAL?' = unsure; '' clears the decision)."""
+        i = self._row(i)
+        clean, conf = parse_name(name)
+        if not clean:
+            return self.clear(i)
+        return self._decide(i, clean, conf, f"name neuron {i} {clean}{'?' if conf == UNSURE_CONF else ''}")
+
+    def pick_candidate(self, i: int, k: int) -> bool:
+        """Give neuron ``i`` its k-th candidate (k = 1, 2, 3)."""
+        i = self._row(i)
+        if not isinstance(k, (int, np.integer)) or not 1 <= int(k) <= K:
+            raise FdlcError(f"candidate {k!r}: give 1, 2 or 3")
+        name = self._s.cand[i][int(k) - 1]
+        if not name:
+            raise FdlcError(f"neuron {i} has no candidate {k}")
+        return self._decide(i, name, 1.0, f"pick candidate {k} ({name}) for neuron {i}")
+
+    def mark_unsure(self, i: int) -> bool:
+        """Keep the current name of neuron ``i`` but mark it unsure ('?', confidence 0.5)."""
+        i = self._row(i)
+        s = self._s
+        name = s.user_id[i] or s.auto_id[i] or s.cand[i][0]
+        if not name:
+            raise FdlcError(f"neuron {i} has no name to mark unsure; type a name first")
+        return self._decide(i, name, UNSURE_CONF, f"mark neuron {i} unsure ({name}?)")
+
+    def clear(self, i: int) -> bool:
+        """Remove the user's decision on neuron ``i`` (its automatic name applies again)."""
+        i = self._row(i)
+
+        def change(s: _State) -> None:
+            s.user_id[i] = ""
+            s.user_conf[i] = np.nan
+            s.status[i] = "auto"
+
+        return self._commit(f"clear neuron {i}", change, [i])
+
+    def set_threshold(self, threshold: float) -> None:
+        """Confidence below which automatic names are hidden (not an undoable edit)."""
+        threshold = _check_threshold(threshold)
+        if threshold != self.threshold:
+            self.threshold = threshold
+            self._changed("threshold")
+
+    # ----- neurons added, removed or moved in the layer ----------------------------------------
+    def replace_table(self, table: NeuronTable, kept: list[int | None], description: str = "edit neurons") -> None:
+        """New neuron table after points were added/removed/moved: ``kept[j]`` is the old row of
+        new row ``j`` (None for a new neuron). Undoable."""
+        if len(kept) != len(table):
+            raise FdlcError("replace_table: one entry of 'kept' per new row is needed")
+
+        def change(s: _State) -> None:
+            old = s.copy()
+            n = len(table)
+            s.table = table
+            s.auto_id, s.user_id, s.status = [""] * n, [""] * n, ["auto"] * n
+            s.auto_conf, s.user_conf = np.zeros(n), np.full(n, np.nan)
+            s.cand, s.cand_p = [[""] * K for _ in range(n)], np.zeros((n, K))
+            for j, o in enumerate(kept):
+                if o is None:
+                    continue
+                s.auto_id[j], s.auto_conf[j] = old.auto_id[o], old.auto_conf[o]
+                s.cand[j], s.cand_p[j] = list(old.cand[o]), old.cand_p[o]
+                s.user_id[j], s.user_conf[j], s.status[j] = old.user_id[o], old.user_conf[o], old.status[o]
+            position = {o: r for r, o in enumerate(old.order)}
+            s.order = sorted(range(n), key=lambda j: (-1, j) if kept[j] is None else (position.get(kept[j], j), j))
+
+        before_n = len(self)
+        self._commit(description, change, kind="structure")
+        if self.current is not None and (self.current >= len(self) or len(self) != before_n):
+            self.current = None
+
+    # ----- undo / redo ---------------------------------------------------------------------------
+    @property
+    def can_undo(self) -> bool:
+        return bool(self._undo)
+
+    @property
+    def can_redo(self) -> bool:
+        return bool(self._redo)
+
+    def history(self) -> list[str]:
+        """Descriptions of the undoable edits, oldest first."""
+        return [e.description for e in self._undo]
+
+    def undo(self) -> str | None:
+        """Undo the last edit; returns its description (None when there is nothing to undo)."""
+        if not self._undo:
+            return None
+        edit = self._undo.pop()
+        self._redo.append(edit)
+        self._s = edit.before.copy()
+        self._after_history_move(edit)
+        return edit.description
+
+    def redo(self) -> str | None:
+        if not self._redo:
+            return None
+        edit = self._redo.pop()
+        self._undo.append(edit)
+        self._s = edit.after.copy()
+        self._after_history_move(edit)
+        return edit.description
+
+    def _after_history_move(self, edit: Edit) -> None:
+        structure = len(edit.before.table) != len(edit.after.table) or edit.before.table is not edit.after.table
+        if self.current is not None and self.current >= len(self):
+            self.current = None
+        self._changed("structure" if structure else ("labelling" if edit.rows is None else "edit"), edit.rows)
+
+    # ----- navigation ----------------------------------------------------------------------------
+    def select(self, i: int | None) -> None:
+        """Make ``i`` the current neuron (None: none)."""
+        i = None if i is None else self._row(i)
+        if i != self.current:
+            self.current = i
+            self._changed("current", None if i is None else [i])
+
+    def next_neuron(self, step: int = 1) -> int | None:
+        """Move to the next neuron in :meth:`review_order` (lowest confidence first; wraps)."""
+        order = self._s.order
+        if not order:
+            return None
+        if self.current is None or self.current not in order:
+            target = order[0] if step > 0 else order[-1]
+        else:
+            target = order[(order.index(self.current) + step) % len(order)]
+        self.current = target
+        self._changed("current", [target])
+        return target
+
+    def previous_neuron(self) -> int | None:
+        return self.next_neuron(-1)
+
+    # ----- export --------------------------------------------------------------------------------
+    def to_dataframe(self) -> pd.DataFrame:
+        """Our CSV layout: neuron-table columns with ``label`` = final name, the review columns,
+        and 0-based voxel coordinates ``x_px, y_px, z_px`` (empty when the voxel size is unknown)."""
+        s = self._s
+        t = s.table
+        df = pd.DataFrame({c: t.xyz[:, k] for k, c in enumerate(COORDS)})
+        for c in COLOUR_CHANNELS:
+            if c in t.colours:
+                df[c] = t.colours[c]
+        df["label"] = self.display_names()
+        df["auto_id"] = s.auto_id
+        df["auto_conf"] = s.auto_conf
+        for k in range(K):
+            df[f"cand_{k + 1}"] = [c[k] for c in s.cand]
+            df[f"prob_{k + 1}"] = s.cand_p[:, k]
+        df["user_id"] = s.user_id
+        df["user_conf"] = s.user_conf  # NaN -> empty cell in the CSV
+        df["status"] = s.status
+        if self.voxel_size_zyx is not None:
+            z, y, x = self.voxel_size_zyx
+            df["x_px"], df["y_px"], df["z_px"] = t.xyz[:, 0] / x, t.xyz[:, 1] / y, t.xyz[:, 2] / z
+        else:
+            df["x_px"] = df["y_px"] = df["z_px"] = np.nan
+        for c in t.extra.columns:
+            if c not in df.columns and c not in REVIEW_COLUMNS:
+                df[c] = t.extra[c].to_numpy()
+        return df
+
+    def export(self, path: str | os.PathLike, format: str = "fdlc", overwrite: bool = False) -> Path:
+        """Write the reviewed names: ``format='fdlc'`` (our CSV, see :meth:`to_dataframe`) or
+        ``'neuropal_id'`` (NeuroPAL_ID "Save ID Info" CSV: User ID = the user's decisions, Auto ID
+        = the automatic names, 1-based internal coordinates). An existing file is replaced only
+        with ``overwrite=True``."""
+        path = Path(path)
+        if format not in EXPORT_FORMATS:
+            raise FdlcError(f"export format '{format}': use 'fdlc' or 'neuropal_id'")
+        if path.is_dir():
+            raise FdlcError(f"{path}: is a folder; give a file name")
+        if path.exists() and not overwrite:
+            raise FdlcError(f"{path}: already exists; choose another name or allow overwriting")
+        try:
+            if format == "fdlc":
+                write_table(self.to_dataframe(), path)
+            else:
+                s = self._s
+                t = s.table
+                user = NeuronTable(t.xyz, t.colours, labels=s.user_id, label_conf=np.nan_to_num(s.user_conf), source=t.source)
+                write_neuropal_id(user, path, self.voxel_size_zyx, auto_id=list(s.auto_id), auto_conf=s.auto_conf)
+        except OSError as exc:
+            raise FdlcError(f"{path}: cannot be written ({exc.strerror or exc})") from None
+        return path
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+
+
+def _check_threshold(t) -> float:
+    try:
+        t = float(t)
+    except (TypeError, ValueError):
+        raise FdlcError(f"threshold {t!r}: give a number between 0 and 1") from None
+    if not 0.0 <= t <= 1.0:
+        raise FdlcError(f"threshold {t}: give a number between 0 and 1")
+    return t
+
+
+def _same(a: _State, b: _State) -> bool:
+    return (
+        a.table is b.table
+        and a.auto_id == b.auto_id
+        and a.user_id == b.user_id
+        and a.status == b.status
+        and a.cand == b.cand
+        and a.order == b.order
+        and a.labelled == b.labelled
+        and np.array_equal(a.auto_conf, b.auto_conf)
+        and np.array_equal(a.user_conf, b.user_conf, equal_nan=True)
+        and np.array_equal(a.cand_p, b.cand_p)
+    )
+
+
+def _floats(values) -> list:
+    return [None if not math.isfinite(float(v)) else float(v) for v in np.asarray(values, dtype=float)]
+
+
+def _nan(values) -> list:
+    return [np.nan if v is None else v for v in values]
+
+
+def _json_value(v):
+    if v is None:
+        return None
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v) if math.isfinite(float(v)) else None
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, str)):
+        return v
+    return str(v)
