@@ -19,14 +19,15 @@ PROPER_ORIENTATIONS = ORIENTATIONS[:4]
 
 
 def canonical_frame(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Centre on the median and rotate XY so that the principal axis is x.
+    """Rotate XY so that the principal axis is x, then centre on the per-axis median.
 
     Returns (canonical coordinates, centre, 3×3 rotation) with ``canon = (xyz - centre) @ R.T``.
-    z (the optical axis) is left alone: worms lie flat, so the body axis is in XY.
+    z (the optical axis) is left alone: worms lie flat, so the body axis is in XY. The median is
+    taken *after* the rotation so that the frame does not depend on how the worm lay in XY.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
-    centre = np.median(xyz, axis=0)
-    centred = xyz - centre
+    mean = xyz.mean(axis=0)
+    centred = xyz - mean
     rotation = np.eye(3)
     if len(xyz) >= 2:
         cov = np.cov(centred[:, :2].T)
@@ -36,7 +37,10 @@ def canonical_frame(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
             angle = np.arctan2(axis[1], axis[0])
             c, s = np.cos(-angle), np.sin(-angle)
             rotation[:2, :2] = [[c, -s], [s, c]]
-    return centred @ rotation.T, centre, rotation
+    rotated = centred @ rotation.T
+    median = np.median(rotated, axis=0)
+    centre = mean + median @ rotation
+    return rotated - median, centre, rotation
 
 
 def fit_affine(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None, ridge: float = 1e-3) -> np.ndarray:

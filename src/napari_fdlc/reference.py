@@ -1,8 +1,227 @@
-"""Built-in reference panel (placeholder until the atlas is built)."""
+"""The built-in reference panel: a statistical atlas derived from the annotated corpus.
+
+What ships is statistics, never a corpus worm: for every neuron name seen in enough worms, its
+mean position and spread in a common frame and its mean NeuroPAL colour (per-volume normal
+scores, see :mod:`napari_fdlc.colour`). Built by :func:`build_atlas`:
+
+1. every worm is put in the canonical frame (:mod:`napari_fdlc.geometry`);
+2. generalised Procrustes on the names: each worm is aligned to the current mean by a
+   similarity transform (rotation, scale, translation; the mirror is allowed *only* to undo a
+   recording's chirality convention, so every worm enters the atlas in one chirality), then the
+   per-name means are recomputed; three rounds;
+3. names seen in at least ``min_frequency`` of the worms are kept.
+
+The panel (what ``fdlc label`` and Auto-label use without ``--template``) is the atlas's mean
+worm plus a few worms sampled from its per-name spreads; :func:`napari_fdlc.match.name_probabilities`
+averages their answers into one probability per name. :func:`generate_worm` samples a realistic
+worm from the same statistics — the bundled sample data is made this way.
+"""
+
 from __future__ import annotations
 
-from .errors import ModelError
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .colour import IDENTITY_CHANNELS, normal_scores
+from .errors import ModelError, atomic_write
+from .geometry import canonical_frame
+from .table import NeuronTable
+
+ATLAS_NAME = "atlas.csv"
+PANEL_SAMPLES = 4  # sampled worms added to the mean worm in the built-in panel
+PANEL_SEED = 0
 
 
-def load_panel():
-    raise ModelError("the built-in reference panel is not built yet: pass --template")
+@dataclass
+class Atlas:
+    names: np.ndarray  # (K,)
+    mean: np.ndarray  # (K, 3) µm, common frame (body axis x)
+    sd: np.ndarray  # (K, 3) µm
+    colour: np.ndarray  # (K, 3) mean normal scores of R, G, B
+    colour_sd: np.ndarray  # (K, 3)
+    frequency: np.ndarray  # (K,) fraction of worms that name it
+    worms: int = 0
+    labs: tuple[str, ...] = ()
+
+    def to_frame(self) -> pd.DataFrame:
+        df = pd.DataFrame({"name": self.names})
+        for i, a in enumerate("xyz"):
+            df[f"{a}_um"] = self.mean[:, i]
+            df[f"{a}_sd"] = self.sd[:, i]
+        for i, c in enumerate(IDENTITY_CHANNELS):
+            df[c] = self.colour[:, i]
+            df[f"{c}_sd"] = self.colour_sd[:, i]
+        df["frequency"] = self.frequency
+        return df
+
+    def save(self, path: str | Path) -> None:
+        with atomic_write(path, "w", encoding="utf-8", newline="") as handle:
+            handle.write(f"# napari-fdlc atlas: {self.worms} worms of {' '.join(self.labs)}\n")
+            self.to_frame().to_csv(handle, index=False, float_format="%.4f")
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Atlas":
+        path = Path(path)
+        try:
+            header = path.read_text().splitlines()[0]
+            df = pd.read_csv(path, comment="#")
+            worms = int(header.split(":")[1].split()[0])
+            labs = tuple(header.split(" of ")[1].split())
+            return cls(
+                df["name"].to_numpy(object),
+                df[["x_um", "y_um", "z_um"]].to_numpy(float),
+                df[["x_sd", "y_sd", "z_sd"]].to_numpy(float),
+                df[list(IDENTITY_CHANNELS)].to_numpy(float),
+                df[[f"{c}_sd" for c in IDENTITY_CHANNELS]].to_numpy(float),
+                df["frequency"].to_numpy(float),
+                worms,
+                labs,
+            )
+        except (OSError, KeyError, ValueError, IndexError) as exc:
+            raise ModelError(f"{path}: not a valid atlas file ({exc})") from None
+
+
+def _similarity(src: np.ndarray, dst: np.ndarray, allow_mirror: bool) -> tuple[np.ndarray, float]:
+    """Best ``dst ≈ s * src @ R.T + t``; returns (aligned src, mean squared residual)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    s0, d0 = src - mu_s, dst - mu_d
+    u, sig, vt = np.linalg.svd(d0.T @ s0)
+    best = None
+    for mirror in ([False, True] if allow_mirror else [False]):
+        flip = np.eye(3)
+        if (np.linalg.det(u @ vt) < 0) != mirror:
+            flip[2, 2] = -1
+        rot = u @ flip @ vt
+        scale = np.trace(np.diag(sig) @ flip) / max((s0**2).sum(), 1e-9)
+        moved = scale * s0 @ rot.T + mu_d
+        res = ((moved - dst) ** 2).sum(1).mean()
+        if best is None or res < best[1]:
+            best = (rot, res, scale)
+    rot, res, scale = best
+    return rot, scale, mu_s, mu_d, res
+
+
+def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
+    """Statistical atlas from labelled worms (a list of :class:`napari_fdlc.corpus.Worm`)."""
+    tables = [w.table for w in worms]
+    canon = [canonical_frame(t.xyz)[0] for t in tables]
+    colours = [
+        normal_scores(t, IDENTITY_CHANNELS) if all(c in t.colours for c in IDENTITY_CHANNELS) else None
+        for t in tables
+    ]
+    reference = int(np.argmax([t.named.sum() for t in tables]))
+    mean = {n: canon[reference][i] for i, n in enumerate(tables[reference].labels) if n}
+    aligned = [None] * len(tables)
+    for _ in range(rounds):
+        for k, (t, c) in enumerate(zip(tables, canon)):
+            rows = [i for i, n in enumerate(t.labels) if n in mean]
+            if len(rows) < 4:
+                aligned[k] = None
+                continue
+            dst = np.array([mean[t.labels[i]] for i in rows])
+            rot, scale, mu_s, mu_d, _ = _similarity(c[rows], dst, allow_mirror=True)
+            aligned[k] = scale * (c - mu_s) @ rot.T + mu_d
+        positions: dict[str, list] = {}
+        for t, a in zip(tables, aligned):
+            if a is None:
+                continue
+            for i, n in enumerate(t.labels):
+                if n:
+                    positions.setdefault(n, []).append(a[i])
+        mean = {n: np.mean(p, axis=0) for n, p in positions.items()}
+    used = sum(a is not None for a in aligned)
+    stats = {}
+    for t, a, col in zip(tables, aligned, colours):
+        if a is None:
+            continue
+        for i, n in enumerate(t.labels):
+            if n:
+                entry = stats.setdefault(n, {"pos": [], "col": []})
+                entry["pos"].append(a[i])
+                if col is not None:
+                    entry["col"].append(col[i])
+    names = sorted(n for n, e in stats.items() if len(e["pos"]) >= max(2, min_frequency * used))
+    pos = [np.array(stats[n]["pos"]) for n in names]
+    col = [np.array(stats[n]["col"]).reshape(-1, 3) for n in names]
+    mean_pos = np.array([p.mean(0) for p in pos])
+    centre = np.median(mean_pos, axis=0)
+    return Atlas(
+        names=np.array(names, dtype=object),
+        mean=mean_pos - centre,
+        sd=np.array([p.std(0) if len(p) > 1 else np.full(3, 2.0) for p in pos]),
+        colour=np.array([c.mean(0) if len(c) else np.zeros(3) for c in col]),
+        colour_sd=np.array([c.std(0) if len(c) > 1 else np.ones(3) for c in col]),
+        frequency=np.array([len(p) / used for p in pos]),
+        worms=used,
+        labs=tuple(sorted({w.lab for w in worms})),
+    )
+
+
+def atlas_worm(atlas: Atlas, rng: np.random.Generator | None = None, keep_fraction: float | None = None) -> NeuronTable:
+    """The mean worm (rng None) or a worm sampled from the atlas's spreads; names kept.
+    With ``keep_fraction``, each name is kept with probability min(1, its frequency / it)."""
+    keep = np.ones(len(atlas.names), bool)
+    xyz = atlas.mean.copy()
+    colour = atlas.colour.copy()
+    if rng is not None:
+        xyz = xyz + rng.normal(size=xyz.shape) * atlas.sd
+        colour = colour + rng.normal(size=colour.shape) * atlas.colour_sd
+        if keep_fraction is not None:
+            keep = rng.random(len(keep)) < np.minimum(1.0, atlas.frequency / keep_fraction)
+    colours = {c: colour[keep, i] for i, c in enumerate(IDENTITY_CHANNELS)}
+    return NeuronTable(xyz[keep], colours, atlas.names[keep], source="atlas")
+
+
+def shipped_atlas_path() -> Path:
+    return Path(str(resources.files("napari_fdlc") / "data" / ATLAS_NAME))
+
+
+_PANEL: dict = {}
+
+
+def load_atlas(path: str | Path | None = None) -> Atlas:
+    path = Path(path) if path else shipped_atlas_path()
+    if not path.exists():
+        raise ModelError(f"the built-in reference panel is missing ({path}): build it with 'fdlc atlas' or pass --template")
+    return Atlas.load(path)
+
+
+def make_panel(atlas: Atlas, samples: int = PANEL_SAMPLES, seed: int = PANEL_SEED) -> list[NeuronTable]:
+    rng = np.random.default_rng(seed)
+    return [atlas_worm(atlas)] + [atlas_worm(atlas, rng) for _ in range(samples)]
+
+
+def load_panel(path: str | Path | None = None) -> list[NeuronTable]:
+    """The built-in reference panel: templates generated from the shipped atlas."""
+    key = str(path)
+    if key not in _PANEL:
+        _PANEL[key] = make_panel(load_atlas(path))
+    return _PANEL[key]
+
+
+def generate_worm(seed: int = 0, atlas: Atlas | None = None, n_unnamed: int = 0) -> NeuronTable:
+    """A plausible labelled worm sampled from the atlas, placed in a recording frame (random XY
+    angle, positive coordinates), with raw-looking positive colours; ``n_unnamed`` extra
+    unlabelled neurons as a segmentation would find."""
+    atlas = atlas or load_atlas()
+    rng = np.random.default_rng(seed)
+    worm = atlas_worm(atlas, rng, keep_fraction=0.6)
+    xyz = worm.xyz
+    if n_unnamed:
+        lo, hi = xyz.min(0), xyz.max(0)
+        extra = rng.uniform(lo, hi, (n_unnamed, 3))
+        xyz = np.vstack([xyz, extra])
+    angle = rng.uniform(-np.pi, np.pi)
+    c, s = np.cos(angle), np.sin(angle)
+    xyz = xyz @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+    xyz = xyz - xyz.min(0) + np.array([5.0, 5.0, 3.0])
+    labels = np.concatenate([worm.labels, np.full(n_unnamed, "", dtype=object)])
+    colours = {}
+    for ch in IDENTITY_CHANNELS:
+        v = np.concatenate([worm.colours[ch], rng.normal(0, 1, n_unnamed)])
+        colours[ch] = np.round(200 * np.exp(0.8 * v), 1)  # raw-looking positive intensities
+    return NeuronTable(xyz, colours, labels, source=f"generated(seed={seed})")

@@ -1,0 +1,85 @@
+"""Non-learned matchers, to show every figure side by side with classical methods.
+
+* :func:`floor_match` — the no-learning floor of ``docs/fdlc.md``: canonical frame, test scaled
+  to the template's RMS radius, four proper 180° flips, Hungarian on squared distance (plus
+  colour), the flip of lowest cost wins.
+* :func:`cpd_match` — Coherent Point Drift (pycpd): the template is deformed onto the test
+  non-rigidly, for each orientation; the orientation with the best CPD fit wins.
+
+Both return probabilities (N_test, M_template + 1) like :meth:`Identifier.match_pair`, so the
+same assignment code turns them into names.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.distance import cdist
+
+from .colour import IDENTITY_CHANNELS
+from .geometry import ORIENTATIONS, PROPER_ORIENTATIONS, canonical_frame
+from .table import NeuronTable
+
+
+def _rms(x):
+    return np.sqrt((x**2).sum(1).mean()) or 1.0
+
+
+def _one_hot(n: int, m: int, rows, cols) -> np.ndarray:
+    probs = np.zeros((n, m + 1))
+    probs[:, m] = 1.0
+    probs[rows, m] = 0.0
+    probs[rows, cols] = 1.0
+    return probs
+
+
+def floor_match(template: NeuronTable, test: NeuronTable, use_colour: bool = False) -> np.ndarray:
+    a, _, _ = canonical_frame(template.xyz)
+    b, _, _ = canonical_frame(test.xyz)
+    b = b * _rms(a) / _rms(b)
+    colour_cost = 0.0
+    channels = [c for c in IDENTITY_CHANNELS if c in template.colours and c in test.colours]
+    if use_colour and channels:
+        def z(t):
+            v = t.colour_matrix(channels)
+            return (v - v.mean(0)) / np.where(v.std(0) > 0, v.std(0), 1)
+        colour_cost = cdist(z(test), z(template), "sqeuclidean")
+        colour_cost = 0.3 * colour_cost / colour_cost.mean()
+    best = None
+    for orientation in PROPER_ORIENTATIONS:
+        d = cdist(b @ orientation.T, a, "sqeuclidean")
+        cost = d / d.mean() + colour_cost
+        r, c = linear_sum_assignment(cost)
+        total = cost[r, c].sum()
+        if best is None or total < best[0]:
+            best = (total, r, c)
+    return _one_hot(len(b), len(a), best[1], best[2])
+
+
+def cpd_match(template: NeuronTable, test: NeuronTable, use_colour: bool = False, max_iterations: int = 50) -> np.ndarray:
+    """Non-rigid CPD from the template onto the test in each of the 8 orientations; the one
+    with the smallest mean distance to its nearest neighbour wins; Hungarian on distances."""
+    from pycpd import DeformableRegistration
+
+    a, _, _ = canonical_frame(template.xyz)
+    b, _, _ = canonical_frame(test.xyz)
+    scale = _rms(a)
+    a = a / scale
+    b = b * (1.0 / _rms(b))
+    best = None
+    for orientation in ORIENTATIONS:
+        bo = b @ orientation.T
+        reg = DeformableRegistration(X=bo, Y=a, alpha=2.0, beta=2.0, w=0.1, max_iterations=max_iterations)
+        moved, _ = reg.register()
+        d = cdist(bo, moved, "sqeuclidean")
+        fit = np.sqrt(d.min(axis=1)).mean()
+        if best is None or fit < best[0]:
+            best = (fit, d, reg.sigma2)
+    _, d, sigma2 = best
+    # Soft probabilities from CPD's own Gaussian width; "no match" takes CPD's outlier weight.
+    logits = -d / (2 * max(sigma2, 1e-6))
+    logits = np.hstack([logits, np.full((len(b), 1), np.log(0.1) + logits.max(axis=1, keepdims=True) - 4.0)])
+    logits -= logits.max(axis=1, keepdims=True)
+    probs = np.exp(logits)
+    probs /= probs.sum(axis=1, keepdims=True)
+    return probs

@@ -1,0 +1,152 @@
+"""``fdlc``: the command line. Parse, call the core, print, exit codes — nothing else.
+
+Every FdlcError becomes one line on stderr and exit status 2; nothing is written unless every
+input was valid.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .errors import FdlcError
+
+METHODS = ("fdlc", "cpd")
+
+
+def _label_parser(sub) -> None:
+    p = sub.add_parser("label", help="name the neurons of neuron tables", description="Name the neurons of one or more neuron tables.")
+    p.add_argument("tests", nargs="+", metavar="TEST.csv", help="neuron tables to identify")
+    p.add_argument("--template", action="append", default=[], metavar="T.csv",
+                   help="labelled neuron table to take names from (repeatable); default: the built-in reference panel")
+    p.add_argument("--no-color", "--no-colour", dest="no_colour", action="store_true", help="positions only")
+    p.add_argument("--top-k", type=int, default=3, help="number of candidates written (default 3)")
+    p.add_argument("--method", choices=METHODS, default="fdlc", help="fdlc (default) or cpd (classical baseline; needs --template)")
+    p.add_argument("--weights", help="model weights (path without suffix); default: the shipped model")
+    p.add_argument("--out", required=True, help="output CSV (one test) or directory (several tests)")
+    p.set_defaults(run=_run_label)
+
+
+def _run_label(args) -> int:
+    from .label import label_files
+
+    label_files(
+        tests=args.tests,
+        templates=args.template,
+        out=args.out,
+        use_colour=not args.no_colour,
+        top_k=args.top_k,
+        method=args.method,
+        weights=args.weights,
+    )
+    return 0
+
+
+def _simulate_parser(sub) -> None:
+    p = sub.add_parser("simulate", help="make synthetic worms with known correspondence from a neuron table")
+    p.add_argument("table", help="source neuron table")
+    p.add_argument("--count", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output folder: <stem>_synN.csv with an 'origin' column")
+    p.set_defaults(run=_run_simulate)
+
+
+def _run_simulate(args) -> int:
+    import numpy as np
+
+    from .errors import atomic_write  # noqa: F401  (write_table is atomic)
+    from .simulate import simulate_worm
+    from .table import read_table, write_table
+
+    if args.count < 1:
+        raise FdlcError("--count must be at least 1")
+    table = read_table(args.table)
+    out = Path(args.out)
+    rng = np.random.default_rng(args.seed)
+    for k in range(args.count):
+        synth = simulate_worm(table, rng)
+        df = synth.table.to_dataframe()
+        df["origin"] = synth.origin
+        path = out / f"{Path(args.table).stem}_syn{k}.csv"
+        write_table(df, path)
+        print(path)
+    return 0
+
+
+def _train_parser(sub) -> None:
+    p = sub.add_parser("train", help="train the correspondence model on the annotated corpus")
+    p.add_argument("--corpus", help="folder with worms.csv (default: ../shared/data/neuropal_corpus or $FDLC_CORPUS)")
+    p.add_argument("--train-labs", nargs="+", default=None)
+    p.add_argument("--val-labs", nargs="+", default=None)
+    p.add_argument("--steps", type=int, default=None)
+    p.add_argument("--batch-size", type=int, default=None)
+    p.add_argument("--minutes", type=float, default=None, help="stop after this many minutes")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")
+    p.add_argument("--out", default="runs/model", help="checkpoint path without suffix")
+    p.set_defaults(run=_run_train)
+
+
+def _run_train(args) -> int:
+    from .train import TrainConfig, train
+
+    cfg = TrainConfig(corpus=args.corpus, seed=args.seed, threads=args.threads, out=args.out,
+                      time_limit_min=args.minutes, resume=args.resume)
+    if args.train_labs:
+        cfg.train_labs = tuple(args.train_labs)
+    if args.val_labs:
+        cfg.val_labs = tuple(args.val_labs)
+    if args.steps:
+        cfg.steps = args.steps
+    if args.batch_size:
+        cfg.batch_size = args.batch_size
+    result = train(cfg)
+    print(f"best mean validation top-1 {result['best_mean_top1']:.3f} after {result['minutes']:.1f} min; weights at {args.out}.safetensors")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fdlc", description="Identify and track C. elegans neurons (fDLC).")
+    sub = parser.add_subparsers(dest="command", required=True)
+    _label_parser(sub)
+    try:
+        from . import _cli_segment
+    except ImportError:  # the image side is optional for the core
+        _cli_segment = None
+    if _cli_segment is not None:
+        p = sub.add_parser("segment", help="detect nuclei in a 3D stack and write a neuron table")
+        _cli_segment.add_arguments(p)
+        p.set_defaults(run=_cli_segment.run)
+    _simulate_parser(sub)
+    _train_parser(sub)
+    for name, module in (("evaluate", "_cli_evaluate"), ("track", "_cli_track")):
+        try:
+            mod = __import__(f"napari_fdlc.{module}", fromlist=["add_arguments", "run"])
+        except ImportError:
+            continue
+        p = sub.add_parser(name, help=mod.__doc__.strip().splitlines()[0] if mod.__doc__ else None)
+        mod.add_arguments(p)
+        p.set_defaults(run=mod.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.run(args) or 0)
+    except FdlcError as exc:
+        print(f"fdlc: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("fdlc: interrupted", file=sys.stderr)
+        return 130
+    except MemoryError:
+        print("fdlc: error: out of memory", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,99 @@
+"""``fdlc label`` as a function: validate every input, load the model once, write atomically.
+
+The output layout is the public contract of ``docs/neuron_table.md``: one row per test neuron in
+input order, ``neuron_index, x_um, y_um, z_um, auto_id, auto_conf, cand_1, prob_1, … cand_K,
+prob_K`` (K = max(top_k, 3)), then the test's other columns (its ``label`` is not copied).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .errors import FdlcError
+from .match import Labelling, make_labelling, name_probabilities
+from .table import COORDS, NeuronTable, read_table, write_table
+
+
+def labelling_frame(test: NeuronTable, result: Labelling, top_k: int = 3) -> pd.DataFrame:
+    k = max(top_k, 3)
+    cand, cand_p = result.candidates(k)
+    df = pd.DataFrame({"neuron_index": np.arange(len(test))})
+    for i, c in enumerate(COORDS):
+        df[c] = test.xyz[:, i]
+    df["auto_id"] = result.auto_id
+    df["auto_conf"] = np.round(result.auto_conf, 6)
+    for r in range(k):
+        df[f"cand_{r + 1}"] = [row[r] for row in cand]
+        df[f"prob_{r + 1}"] = np.round(cand_p[:, r], 6)
+    rest = test.to_dataframe().drop(columns=list(COORDS) + ["label"])
+    for c in rest.columns:
+        if c not in df.columns:
+            df[c] = rest[c].to_numpy()
+    return df
+
+
+def _output_paths(tests: list[str], out: str) -> list[Path]:
+    stems = [Path(t).stem for t in tests]
+    seen = set()
+    for stem in stems:
+        if stem in seen:
+            raise FdlcError(f"two test tables share the file stem '{stem}': their outputs would collide in {out}")
+        seen.add(stem)
+    out_path = Path(out)
+    if len(tests) == 1 and not out_path.is_dir():
+        if out_path.parent and not out_path.parent.exists():
+            raise FdlcError(f"{out}: the folder {out_path.parent} does not exist")
+        return [out_path]
+    if out_path.exists() and not out_path.is_dir():
+        raise FdlcError(f"{out}: with several test tables --out must be a directory")
+    return [out_path / f"{stem}.csv" for stem in stems]
+
+
+def label_files(
+    tests: list[str],
+    templates: list[str] | None = None,
+    out: str = "labels.csv",
+    use_colour: bool = True,
+    top_k: int = 3,
+    method: str = "fdlc",
+    weights: str | None = None,
+) -> list[Path]:
+    """Label each test table and write one CSV per test. Returns the paths written."""
+    if top_k < 1:
+        raise FdlcError(f"--top-k must be at least 1 (got {top_k})")
+    if method not in ("fdlc", "cpd"):
+        raise FdlcError(f"unknown --method '{method}' (use fdlc or cpd)")
+    if method == "cpd" and not templates:
+        raise FdlcError("--method cpd needs --template (the reference panel is for the fdlc model)")
+    # Validate everything before any work or any write.
+    test_tables = [read_table(t) for t in tests]
+    template_tables = [read_table(t) for t in (templates or [])]
+    for t in template_tables:
+        if not t.named.any():
+            raise FdlcError(f"{t.source}: the template has no named neuron (a 'label' column with names is needed)")
+    paths = _output_paths(tests, out)
+    if method == "fdlc":
+        from .identify import Identifier, default_identifier, label_neurons
+        from .reference import load_panel
+
+        identifier = Identifier.load(weights) if weights else default_identifier()
+        panel = template_tables or load_panel()
+        results = [label_neurons(t, panel, use_colour, identifier=identifier) for t in test_tables]
+    else:
+        results = [cpd_labelling(t, template_tables, use_colour) for t in test_tables]
+    if len(paths) > 1:
+        paths[0].parent.mkdir(parents=True, exist_ok=True)
+    for test, result, path in zip(test_tables, results, paths):
+        write_table(labelling_frame(test, result, top_k), path)
+    return paths
+
+
+def cpd_labelling(test: NeuronTable, templates: list[NeuronTable], use_colour: bool = False) -> Labelling:
+    from .baselines import cpd_match
+
+    per_template = [(cpd_match(t, test, use_colour)[:, :-1], t.labels) for t in templates]
+    names, probs = name_probabilities(per_template)
+    return make_labelling(names, probs, info={"method": "cpd"})

@@ -1,0 +1,58 @@
+"""Shared fixtures: small worms generated from the shipped atlas (no corpus needed) and a
+real, untrained model saved as safetensors (fast, and independent of the shipped weights)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from napari_fdlc.corpus import default_corpus_path
+from napari_fdlc.reference import generate_worm
+from napari_fdlc.table import NeuronTable, write_table
+
+
+@pytest.fixture(scope="session")
+def worm() -> NeuronTable:
+    return generate_worm(seed=1)
+
+
+@pytest.fixture(scope="session")
+def other_worm() -> NeuronTable:
+    return generate_worm(seed=2)
+
+
+@pytest.fixture(scope="session")
+def untrained_weights(tmp_path_factory):
+    import torch
+
+    from napari_fdlc.model import CorrespondenceModel, save_model
+
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("weights") / "model"
+    save_model(CorrespondenceModel({"layers": 1, "dim": 32}), path, {"inference": {"refine_steps": 1}})
+    return path
+
+
+@pytest.fixture
+def table_files(tmp_path, worm, other_worm):
+    test = tmp_path / "test.csv"
+    template = tmp_path / "template.csv"
+    write_table(worm, test)
+    write_table(other_worm, template)
+    return test, template
+
+
+@pytest.fixture(scope="session")
+def corpus_path():
+    path = default_corpus_path()
+    if path is None:
+        pytest.skip("NeuroPAL corpus not available (set FDLC_CORPUS)")
+    return path
+
+
+def random_table(n: int, seed: int = 0, named: bool = True) -> NeuronTable:
+    rng = np.random.default_rng(seed)
+    xyz = rng.normal(0, 1, (n, 3)) * [40, 8, 6] + [60, 30, 15]
+    labels = np.array([f"N{i}" if named else "" for i in range(n)], dtype=object)
+    colours = {c: rng.gamma(2.0, 100.0, n) for c in "RGB"}
+    return NeuronTable(xyz, colours, labels)

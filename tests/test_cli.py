@@ -1,0 +1,108 @@
+"""`fdlc label` against the contract of docs/neuron_table.md."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from napari_fdlc.cli import main
+from napari_fdlc.table import NeuronTable, write_table
+
+
+def run(*args):
+    return main([str(a) for a in args])
+
+
+def test_label_one_test_contract_columns(tmp_path, table_files, untrained_weights, worm):
+    test, template = table_files
+    out = tmp_path / "out.csv"
+    assert run("label", test, "--template", template, "--weights", untrained_weights, "--out", out, "--top-k", "5") == 0
+    df = pd.read_csv(out, keep_default_na=False)
+    expected = ["neuron_index", "x_um", "y_um", "z_um", "auto_id", "auto_conf"]
+    expected += [f"{p}_{k}" for k in range(1, 6) for p in ("cand", "prob")]
+    assert list(df.columns[: len(expected)]) == expected
+    assert "label" not in df.columns and {"R", "G", "B"} <= set(df.columns)
+    assert list(df["neuron_index"]) == list(range(len(worm)))
+    assert np.allclose(df[["x_um", "y_um", "z_um"]], worm.xyz, atol=1e-3)
+    assert df["auto_conf"].between(0, 1).all()
+    probs = df[[f"prob_{k}" for k in range(1, 6)]].to_numpy()
+    assert np.all(np.diff(probs, axis=1) <= 1e-9) and np.all(probs.sum(1) <= 1 + 1e-5)
+    named = df["auto_id"][df["auto_id"] != ""]
+    assert named.is_unique
+
+
+def test_top_k_one_still_writes_three_candidates(tmp_path, table_files, untrained_weights):
+    test, template = table_files
+    out = tmp_path / "out.csv"
+    assert run("label", test, "--template", template, "--weights", untrained_weights, "--out", out, "--top-k", "1") == 0
+    assert {"cand_3", "prob_3"} <= set(pd.read_csv(out).columns)
+
+
+def test_several_tests_go_to_a_directory_and_replace(tmp_path, table_files, untrained_weights, worm):
+    test, template = table_files
+    second = tmp_path / "second.csv"
+    write_table(worm.subset(np.arange(10)), second)
+    out = tmp_path / "outdir"
+    assert run("label", test, second, "--template", template, "--template", test, "--weights", untrained_weights, "--out", out, "--no-color") == 0
+    assert sorted(p.name for p in out.iterdir()) == ["second.csv", "test.csv"]
+    assert len(pd.read_csv(out / "second.csv")) == 10
+    # an existing output named on the command line is replaced
+    assert run("label", second, "--template", template, "--weights", untrained_weights, "--out", out / "second.csv") == 0
+
+
+def test_cpd_method(tmp_path, table_files):
+    test, template = table_files
+    out = tmp_path / "cpd.csv"
+    assert run("label", test, "--template", template, "--method", "cpd", "--out", out) == 0
+    df = pd.read_csv(out, keep_default_na=False)
+    assert (df["auto_id"] != "").mean() > 0.5
+
+
+def _bad(tmp_path, name, content):
+    p = tmp_path / name
+    p.write_text(content)
+    return p
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["missing", "empty", "no_columns", "text", "nan", "inf", "template_without_names", "same_stem", "top_k", "cpd_no_template"],
+)
+def test_bad_input_one_line_nonzero_nothing_written(tmp_path, table_files, untrained_weights, capsys, case):
+    test, template = table_files
+    out = tmp_path / "out"
+    args = {
+        "missing": [tmp_path / "absent.csv", "--template", template],
+        "empty": [_bad(tmp_path, "e.csv", ""), "--template", template],
+        "no_columns": [_bad(tmp_path, "c.csv", "x_um,y\n1,2\n"), "--template", template],
+        "text": [_bad(tmp_path, "t.csv", "x_um,y_um,z_um\n1,two,3\n"), "--template", template],
+        "nan": [_bad(tmp_path, "n.csv", "x_um,y_um,z_um\n1,NaN,3\n"), "--template", template],
+        "inf": [_bad(tmp_path, "i.csv", "x_um,y_um,z_um\n1,2,inf\n"), "--template", template],
+        "template_without_names": [test, "--template", _bad(tmp_path, "u.csv", "x_um,y_um,z_um,label\n1,2,3,\n")],
+        "same_stem": [test, (tmp_path / "sub").mkdir() or _bad(tmp_path, "sub/test.csv", test.read_text()), "--template", template],
+        "top_k": [test, "--template", template, "--top-k", "0"],
+        "cpd_no_template": [test, "--method", "cpd"],
+    }[case]
+    code = run("label", *args, "--weights", untrained_weights, "--out", out)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0
+    assert len(err) == 1 and err[0].startswith("fdlc: error:"), err
+    assert not out.exists()
+
+
+def test_console_script_no_traceback(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "napari_fdlc.cli", "label", str(tmp_path / "x.csv"), "--out", str(tmp_path / "o.csv")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "Traceback" not in proc.stderr
+
+
+def test_one_neuron_test(tmp_path, table_files, untrained_weights):
+    _, template = table_files
+    one = tmp_path / "one.csv"
+    write_table(NeuronTable(np.array([[10.0, 5.0, 3.0]])), one)
+    out = tmp_path / "one_out.csv"
+    assert run("label", one, "--template", template, "--weights", untrained_weights, "--out", out) == 0
+    assert len(pd.read_csv(out)) == 1

@@ -1,0 +1,78 @@
+import itertools
+
+import numpy as np
+import pytest
+
+from napari_fdlc.match import assign, make_labelling, name_probabilities, top_k
+
+
+def brute_force(probs, weight=1.0):
+    """Best one-to-one assignment by enumeration (-1 = no named match)."""
+    n, v = probs.shape
+    no_match = np.clip(1 - probs.sum(1), 1e-12, 1) * weight
+    best, best_choice = -np.inf, None
+    options = list(range(v)) + [-1]
+    for choice in itertools.product(options, repeat=n):
+        used = [c for c in choice if c >= 0]
+        if len(used) != len(set(used)):
+            continue
+        score = sum(np.log(max(probs[j, c], 1e-12)) if c >= 0 else np.log(no_match[j]) for j, c in enumerate(choice))
+        if score > best:
+            best, best_choice = score, choice
+    return np.array(best_choice), best
+
+
+@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("weight", [1.0, 0.2])
+def test_assignment_equals_brute_force(seed, weight):
+    rng = np.random.default_rng(seed)
+    n, v = rng.integers(1, 5), rng.integers(1, 5)
+    raw = rng.random((n, v + 1)) ** 3
+    probs = (raw / raw.sum(1, keepdims=True))[:, :v]
+    got = assign(probs, no_match_weight=weight)
+    _, best = brute_force(probs, weight)
+    no_match = np.clip(1 - probs.sum(1), 1e-12, 1) * weight
+    score = sum(np.log(max(probs[j, c], 1e-12)) if c >= 0 else np.log(no_match[j]) for j, c in enumerate(got))
+    assert score == pytest.approx(best)
+    used = got[got >= 0]
+    assert len(used) == len(set(used))
+
+
+def test_fixed_rows_are_kept_and_their_names_taken():
+    probs = np.array([[0.9, 0.05], [0.8, 0.1]])
+    free = assign(probs)
+    assert free[0] == 0
+    fixed = assign(probs, fixed={0: 1})
+    assert fixed[0] == 1 and fixed[1] == 0
+
+
+def test_top_k_ordering_and_sum():
+    rng = np.random.default_rng(0)
+    raw = rng.random((20, 11))
+    probs = (raw / raw.sum(1, keepdims=True))[:, :10]
+    names = [f"N{i}" for i in range(10)]
+    cand, p = top_k(probs, names, 3)
+    assert np.all(np.diff(p, axis=1) <= 0)
+    assert np.all(p.sum(1) <= 1 + 1e-9)
+    for j in range(20):
+        assert cand[j][0] == names[int(np.argmax(probs[j]))]
+    cand, p = top_k(probs[:, :2], names[:2], 3)
+    assert all(row[2] == "" for row in cand) and np.all(p[:, 2] == 0)
+
+
+def test_name_probabilities_average_templates_and_skip_unnamed():
+    p1 = np.array([[0.7, 0.2]])  # template 1: A, unnamed
+    p2 = np.array([[0.1, 0.8]])  # template 2: A, B
+    names, probs = name_probabilities([(p1, np.array(["A", ""], object)), (p2, np.array(["A", "B"], object))])
+    assert names == ["A", "B"]
+    assert probs[0] == pytest.approx([0.4, 0.4])
+
+
+def test_labelling_confidence_and_threshold():
+    probs = np.array([[0.9, 0.0], [0.0, 0.3]])
+    lab = make_labelling(["A", "B"], probs)
+    assert lab.auto_id == ["A", ""]  # 0.3 < P(no match) = 0.7
+    assert lab.auto_conf == pytest.approx([0.9, 0.7])
+    assert lab.thresholded(0.95) == ["", ""]
+    lab = make_labelling(["A", "B"], probs, no_match_weight=0.2)
+    assert lab.auto_id == ["A", "B"]

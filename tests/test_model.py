@@ -1,0 +1,121 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from napari_fdlc.errors import ModelError
+from napari_fdlc.identify import Identifier, InferenceSettings
+from napari_fdlc.model import CorrespondenceModel, load_model, matching_loss, save_model
+from napari_fdlc.table import NeuronTable
+
+
+@pytest.fixture(scope="module")
+def identifier(untrained_weights):
+    return Identifier.load(untrained_weights)
+
+
+def test_model_is_permutation_equivariant():
+    torch.manual_seed(0)
+    model = CorrespondenceModel({"layers": 2, "dim": 32}).eval()
+    a, b = torch.randn(1, 12, 3) * 20, torch.randn(1, 9, 3) * 20
+    perm_a, perm_b = torch.randperm(12), torch.randperm(9)
+    with torch.no_grad():
+        out = model(a, b)
+        out_p = model(a[:, perm_a], b[:, perm_b])
+    expected = torch.cat([out[:, :, :12][:, :, perm_a], out[:, :, 12:]], dim=2)[:, perm_b]
+    assert torch.allclose(out_p, expected, atol=1e-5)
+    assert torch.allclose(out.exp().sum(-1), torch.ones(1, 9), atol=1e-5)
+
+
+def test_padding_does_not_change_results():
+    torch.manual_seed(0)
+    model = CorrespondenceModel({"layers": 2, "dim": 32}).eval()
+    a, b = torch.randn(1, 7, 3) * 20, torch.randn(1, 5, 3) * 20
+    pa = torch.cat([a, torch.zeros(1, 3, 3)], 1)
+    pb = torch.cat([b, torch.zeros(1, 2, 3)], 1)
+    ma = torch.tensor([[True] * 7 + [False] * 3])
+    mb = torch.tensor([[True] * 5 + [False] * 2])
+    with torch.no_grad():
+        out = model(a, b)
+        padded = model(pa, pb, ma, mb)
+    assert torch.allclose(padded[:, :5, :7], out[:, :, :7], atol=1e-5)
+    assert torch.allclose(padded[:, :5, 10], out[:, :, 7], atol=1e-5)
+
+
+def test_loss_falls_on_one_pair():
+    torch.manual_seed(0)
+    model = CorrespondenceModel({"layers": 1, "dim": 32})
+    a = torch.randn(1, 10, 3) * 20
+    b = a[:, torch.randperm(10)]
+    target = (b[0, :, None] == a[0, None]).all(-1).float().argmax(-1)[None]
+    opt = torch.optim.Adam(model.parameters(), 1e-2)
+    first = None
+    for _ in range(30):
+        loss = matching_loss(model(a, b), target)
+        first = first if first is not None else loss.item()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert loss.item() < first * 0.5
+
+
+def _rotate_xy(xyz, angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return xyz @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+
+
+def test_labels_do_not_depend_on_how_the_worm_lies(identifier, worm, other_worm):
+    base = identifier.label(worm, [other_worm], use_colour=False)
+    rng = np.random.default_rng(0)
+    for angle in rng.uniform(-np.pi, np.pi, 3):
+        turned = _rotate_xy(worm.xyz, angle) + [100, -50, 7]
+        got = identifier.label(NeuronTable(turned, worm.colours), [other_worm], use_colour=False)
+        assert np.mean(np.array(got.auto_id) == np.array(base.auto_id)) > 0.97
+    # The other side: 180° about the body axis (a proper rotation, not a mirror).
+    from napari_fdlc.geometry import canonical_frame
+
+    canon, centre, rot = canonical_frame(worm.xyz)
+    other_side = (canon * [1, -1, -1]) @ rot + centre
+    got = identifier.label(NeuronTable(other_side, worm.colours), [other_worm], use_colour=False)
+    assert np.mean(np.array(got.auto_id) == np.array(base.auto_id)) > 0.97
+
+
+def test_permuting_the_test_permutes_the_output(identifier, worm, other_worm):
+    base = identifier.label(worm, [other_worm])
+    perm = np.random.default_rng(3).permutation(len(worm))
+    got = identifier.label(worm.subset(perm), [other_worm])
+    assert np.mean(np.array(got.auto_id) == np.array(base.auto_id)[perm]) > 0.97
+    assert np.allclose(got.probs, base.probs[perm], atol=1e-4)
+
+
+@pytest.mark.parametrize("n", [1, 2, 2000])
+def test_any_neuron_count(identifier, other_worm, n):
+    rng = np.random.default_rng(n)
+    test = NeuronTable(rng.normal(size=(n, 3)) * [40, 10, 8], {c: rng.random(n) for c in "RGB"})
+    result = identifier.label(test, [other_worm])
+    assert len(result.auto_id) == n
+    assert np.all(result.probs.sum(1) <= 1 + 1e-6)
+    named = [x for x in result.auto_id if x]
+    assert len(named) == len(set(named))
+
+
+def test_weights_round_trip_and_refusals(tmp_path):
+    model = CorrespondenceModel({"layers": 1, "dim": 32})
+    save_model(model, tmp_path / "m", {"note": "x"})
+    back = load_model(tmp_path / "m")
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, back.state_dict()[k])
+    # Corrupt weights
+    (tmp_path / "m.safetensors").write_bytes(b"not a safetensors file")
+    with pytest.raises(ModelError, match="not a valid safetensors"):
+        load_model(tmp_path / "m")
+    # Weights that do not fit the configuration
+    save_model(model, tmp_path / "m")
+    meta = json.loads((tmp_path / "m.json").read_text())
+    meta["config"]["dim"] = 64
+    (tmp_path / "m.json").write_text(json.dumps(meta))
+    with pytest.raises(ModelError, match="do not fit"):
+        load_model(tmp_path / "m")
+    with pytest.raises(ModelError, match="missing"):
+        load_model(tmp_path / "absent")

@@ -1,0 +1,86 @@
+import numpy as np
+import pytest
+
+from napari_fdlc.errors import TableError
+from napari_fdlc.table import NeuronTable, parse_name, read_table, write_neuropal_id, write_table
+
+
+def write(path, text):
+    path.write_text(text)
+    return path
+
+
+def test_round_trip_keeps_everything(tmp_path, worm):
+    worm.extra["my_note"] = [f"n{i}" for i in range(len(worm))]
+    write_table(worm, tmp_path / "a.csv")
+    back = read_table(tmp_path / "a.csv")
+    assert np.allclose(back.xyz, worm.xyz, atol=1e-3)
+    assert list(back.labels) == list(worm.labels)
+    assert set(back.colours) == set(worm.colours)
+    assert list(back.extra["my_note"]) == list(worm.extra["my_note"])
+    del worm.extra["my_note"]
+
+
+def test_neuropal_id_round_trip(tmp_path, worm):
+    t = NeuronTable(worm.xyz, worm.colours, worm.labels, np.where(np.arange(len(worm)) % 5 == 0, 0.5, 1.0))
+    write_neuropal_id(t, tmp_path / "np.csv", voxel_size_zyx=(1.5, 0.3, 0.3))
+    lines = (tmp_path / "np.csv").read_text().splitlines()
+    assert lines[7].startswith("User ID,User Confidence,Emphasized?,Auto ID")
+    back = read_table(tmp_path / "np.csv")
+    assert np.allclose(back.xyz, t.xyz, atol=1e-3)
+    assert list(back.labels) == list(t.labels)
+    assert np.array_equal(back.label_conf, t.label_conf)
+    # 1-based internal voxel coordinates
+    assert float(back.extra["Internal X (px)"][0]) == pytest.approx(t.xyz[0, 0] / 0.3 + 1, abs=1e-2)
+
+
+def test_names_unsure_and_duplicates(tmp_path, capsys):
+    p = write(tmp_path / "t.csv", "x_um,y_um,z_um,label\n0,0,0, AVAL \n1,0,0,AVAR?\n2,0,0,?\n3,0,0,\n4,0,0,RIAL\n5,0,0,RIAL\n")
+    t = read_table(p)
+    assert list(t.labels) == ["AVAL", "AVAR", "", "", "", ""]
+    assert list(t.label_conf) == [1.0, 0.5, 0.0, 0.0, 0.0, 0.0]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "RIAL" in err[0]
+    assert parse_name("I1-alt") == ("I1-alt", 1.0)
+
+
+@pytest.mark.parametrize(
+    "content, expected",
+    [
+        ("", "empty"),
+        ("x_um,y_um\n1,2\n", "missing column(s) z_um"),
+        ("x_um,y_um,z_um\n", "no rows"),
+        ("x_um,y_um,z_um\n1,2,3\n1,abc,3\n", "line 3, column 'y_um'"),
+        ("x_um,y_um,z_um\n1,2,nan\n", "line 2, column 'z_um'"),
+        ("x_um,y_um,z_um\n1,inf,2\n", "line 2, column 'y_um'"),
+        ("x_um,y_um,z_um,R\n1,2,3,red\n", "column 'R'"),
+    ],
+)
+def test_bad_tables_are_refused_with_one_line(tmp_path, content, expected):
+    p = write(tmp_path / "bad.csv", content)
+    with pytest.raises(TableError) as info:
+        read_table(p)
+    message = str(info.value)
+    assert expected in message and str(p) in message and "\n" not in message
+
+
+def test_missing_file_and_folder(tmp_path):
+    with pytest.raises(TableError, match="no such file"):
+        read_table(tmp_path / "nope.csv")
+    with pytest.raises(TableError, match="folder"):
+        read_table(tmp_path)
+
+
+def test_atomic_write_leaves_no_partial_file(tmp_path, worm):
+    target = tmp_path / "out.csv"
+    write_table(worm, target)
+    before = target.read_text()
+
+    class Boom:
+        def to_dataframe(self):
+            raise RuntimeError("boom")
+
+    with pytest.raises(Exception):
+        write_table(Boom(), target)
+    assert target.read_text() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["out.csv"]
