@@ -65,6 +65,7 @@ class RenderParams:
     offset: float = 100.0  # camera offset, counts
     bleed: float = 1.0  # scales the off-diagonal bleed-through
     margin_um: tuple[float, float, float] = (4.0, 8.0, 8.0)  # z, y, x around the neurons
+    min_spacing_um: float = 1.6  # closer centres are pushed apart (nuclei cannot overlap)
 
 
 def colour_intensities(values: np.ndarray) -> np.ndarray:
@@ -117,6 +118,7 @@ def render_stack(
     vz, vy, vx = p.voxel_size_zyx
     vox = np.array([vz, vy, vx])
     xyz = align_worm(table.xyz) if align else table.xyz - table.xyz.mean(axis=0)
+    xyz = spread_apart(xyz, p.min_spacing_um)
     zyx = xyz[:, ::-1]
     margin = np.asarray(p.margin_um, dtype=float)
     if shape_zyx is None:
@@ -202,6 +204,28 @@ def render_stack(
         for k, c in enumerate(("R", "G", "B")):
             truth.colours[c] = amps[:, k]
     return stack, truth.subset(np.flatnonzero(inside))
+
+
+def spread_apart(xyz: np.ndarray, min_spacing_um: float, iterations: int = 20) -> np.ndarray:
+    """Push centres closer than ``min_spacing_um`` apart (symmetrically), leaving the others.
+
+    Generated worms sample each neuron independently, so two can land on top of each other;
+    real nuclei never overlap.
+    """
+    xyz = np.array(xyz, dtype=float)
+    if min_spacing_um <= 0 or len(xyz) < 2:
+        return xyz
+    for _ in range(iterations):
+        pairs = cKDTree(xyz).query_pairs(min_spacing_um * 0.999, output_type="ndarray")
+        if len(pairs) == 0:
+            break
+        d = xyz[pairs[:, 1]] - xyz[pairs[:, 0]]
+        dist = np.linalg.norm(d, axis=1, keepdims=True)
+        direction = np.where(dist > 1e-9, d / np.maximum(dist, 1e-9), np.array([[1.0, 0.0, 0.0]]))
+        push = 0.5 * (min_spacing_um - dist) * direction
+        np.add.at(xyz, pairs[:, 1], push)
+        np.add.at(xyz, pairs[:, 0], -push)
+    return xyz
 
 
 def _zscore(v: np.ndarray) -> np.ndarray:

@@ -18,6 +18,7 @@ import io
 import os
 import re
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -326,14 +327,20 @@ def read_tiff(
     import tifffile
 
     source = str(path)
+    with _tifffile_log() as problems:
+        try:
+            tif = tifffile.TiffFile(path)
+            series_list = tif.series
+        except Exception as exc:  # tifffile raises many types for damaged files
+            raise ImageError(f"{source}: not a readable TIFF file ({_first_line(exc)}); check or re-export it") from None
     try:
-        tif = tifffile.TiffFile(path)
-    except Exception as exc:  # tifffile raises many types for damaged files
-        raise ImageError(f"{source}: not a readable TIFF file ({_first_line(exc)})") from None
-    try:
-        if not tif.series:
-            raise ImageError(f"{source}: the TIFF holds no image")
-        series = tif.series[0]
+        if problems:
+            # tifffile skips what it cannot parse and returns the rest (e.g. a 2D page of a
+            # truncated stack); reading on would give a wrong image, so stop here.
+            raise ImageError(f"{source}: the TIFF is damaged or truncated ({problems[0]}); re-export it")
+        if not series_list:
+            raise ImageError(f"{source}: the TIFF is damaged or holds no image; re-export it")
+        series = series_list[0]
         file_axes = series.axes
         shape = tuple(series.shape)
         _check_tiff_complete(tif, series, source)
@@ -366,6 +373,30 @@ def read_tiff(
                 "give them, e.g. --axes ZCYX (axes='ZCYX')"
             )
     return finish_stack(data, file_axes, source, voxel, names, voxel_size, channels)
+
+
+@contextmanager
+def _tifffile_log():
+    """Collect tifffile's logged errors instead of printing them (our errors are one line)."""
+    import logging
+
+    problems: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if record.levelno >= logging.ERROR:
+                problems.append(_first_line(Exception(record.getMessage())))
+
+    logger = logging.getLogger("tifffile")
+    handler = Collect()
+    saved = logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        yield problems
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = saved
 
 
 def _check_tiff_complete(tif, series, source: str) -> None:

@@ -1,0 +1,342 @@
+"""Image readers: round trips, metadata, channel roles and one-line errors for bad input."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+
+from napari_fdlc.errors import FdlcError
+from napari_fdlc.io import images
+from napari_fdlc.io.images import Stack, read_nd2, read_stack, role_from_name, write_tiff
+from napari_fdlc.io.nwb import _text, read_nwb_neurons, write_nwb
+from napari_fdlc.table import NeuronTable
+
+NAMES = ["mNeptune2.5", "CyOFP1.5", "mTagBFP2", "TagRFP-T"]
+
+
+@pytest.fixture
+def stack():
+    rng = np.random.default_rng(0)
+    data = rng.integers(0, 4000, (4, 5, 24, 32)).astype(np.uint16)
+    return Stack(data, (1.5, 0.25, 0.3), ["R", "G", "B", "W"], channel_names=NAMES)
+
+
+def one_line_error(exc_info, *words):
+    message = str(exc_info.value)
+    assert "\n" not in message and message.strip() == message and message
+    for w in words:
+        assert w.lower() in message.lower(), message
+    return message
+
+
+# ----- TIFF ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ome", [True, False], ids=["ome-tiff", "imagej"])
+def test_tiff_round_trip(tmp_path, stack, ome):
+    path = tmp_path / ("s.ome.tif" if ome else "s.tif")
+    write_tiff(path, stack, ome=ome)
+    got = read_stack(path)
+    np.testing.assert_array_equal(np.asarray(got.data), stack.data)
+    assert got.voxel_size_zyx == pytest.approx(stack.voxel_size_zyx)
+    assert got.channel_roles == ["R", "G", "B", "W"]
+    assert got.channel_names == NAMES
+    assert got.shape_zyx == (5, 24, 32) and got.n_channels == 4 and not got.is_lazy
+    assert got.channel("W").shape == (5, 24, 32)
+
+
+def test_ome_units_are_converted(tmp_path):
+    data = np.zeros((3, 8, 8), np.uint16)
+    path = tmp_path / "nm.ome.tif"
+    tifffile.imwrite(path, data, ome=True, metadata={
+        "axes": "ZYX", "PhysicalSizeX": 250, "PhysicalSizeXUnit": "nm", "PhysicalSizeY": 250,
+        "PhysicalSizeYUnit": "nm", "PhysicalSizeZ": 0.001, "PhysicalSizeZUnit": "mm"})
+    got = read_stack(path)
+    assert got.voxel_size_zyx == pytest.approx((1.0, 0.25, 0.25))
+    assert got.channel_roles == [None] and got.data.shape == (1, 3, 8, 8)
+
+
+def test_user_values_override_the_file(tmp_path, stack):
+    path = tmp_path / "s.ome.tif"
+    write_tiff(path, stack)
+    got = read_stack(path, voxel_size=(2, 0.5, 0.5), channels=["W", "-", "gcamp", "R"])
+    assert got.voxel_size_zyx == (2.0, 0.5, 0.5)
+    assert got.channel_roles == ["W", None, "GFP", "R"]
+
+
+def test_tiff_without_voxel_size_asks_for_it(tmp_path):
+    path = tmp_path / "plain.tif"
+    tifffile.imwrite(path, np.zeros((2, 4, 8, 8), np.uint16), metadata={"axes": "CZYX"})
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path)
+    one_line_error(exc, "voxel size", "--voxel-size")
+    got = read_stack(path, voxel_size=(1, 0.3, 0.3), channels=["W", "R"])
+    assert got.channel_roles == ["W", "R"]
+
+
+def test_tiff_without_axes_asks_for_them(tmp_path):
+    path = tmp_path / "pages.tif"
+    with tifffile.TiffWriter(path) as tw:
+        for _ in range(6):  # separate pages, no shape metadata: axes unknown
+            tw.write(np.zeros((8, 8), np.uint16), metadata=None)
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path, voxel_size=(1, 0.3, 0.3))
+    one_line_error(exc, "axes")
+    got = read_stack(path, voxel_size=(1, 0.3, 0.3), axes="ZYX")
+    assert got.data.shape == (1, 6, 8, 8)
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path, voxel_size=(1, 0.3, 0.3), axes="CZYX")
+    one_line_error(exc, "axes")
+
+
+def test_imagej_time_series_is_refused(tmp_path):
+    path = tmp_path / "movie.tif"
+    tifffile.imwrite(path, np.zeros((3, 4, 8, 8), np.uint16), imagej=True, metadata={"axes": "TZYX"})
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path, voxel_size=(1, 0.3, 0.3))
+    one_line_error(exc, "3 time points")
+
+
+def test_2d_image_is_refused(tmp_path):
+    path = tmp_path / "flat.ome.tif"
+    tifffile.imwrite(path, np.zeros((2, 8, 8), np.uint16), ome=True, metadata={"axes": "CYX"})
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path, voxel_size=(1, 0.3, 0.3))
+    one_line_error(exc, "2D")
+
+
+def test_truncated_tiff_is_refused(tmp_path, stack):
+    path = tmp_path / "cut.ome.tif"
+    write_tiff(path, stack, compression=None)
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path)
+    one_line_error(exc, str(path))
+
+
+@pytest.mark.parametrize("content", [b"", b"II*\x00garbage", b"not an image at all"], ids=["empty", "corrupt", "text"])
+def test_bad_files_are_refused(tmp_path, content):
+    path = tmp_path / "bad.tif"
+    path.write_bytes(content)
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path)
+    one_line_error(exc, str(path))
+
+
+def test_missing_file_and_folder_and_unknown_format(tmp_path):
+    with pytest.raises(FdlcError) as exc:
+        read_stack(tmp_path / "nope.tif")
+    one_line_error(exc, "no such file")
+    with pytest.raises(FdlcError) as exc:
+        read_stack(tmp_path)
+    one_line_error(exc, "folder")
+    other = tmp_path / "stack.czi"
+    other.write_bytes(b"ZISRAWFILE" + bytes(100))
+    with pytest.raises(FdlcError) as exc:
+        read_stack(other)
+    one_line_error(exc, "TIFF", "NWB", "ND2")
+
+
+def test_channel_roles_that_do_not_fit(tmp_path, stack):
+    path = tmp_path / "s.ome.tif"
+    write_tiff(path, stack)
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path, channels=["R", "G"])
+    one_line_error(exc, "2 channel role(s)", "4 channel(s)")
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path, channels=["R", "G", "B", "purple"])
+    one_line_error(exc, "purple")
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path, channels=["R", "R", "B", "W"])
+    one_line_error(exc, "more than once")
+
+
+def test_bad_voxel_size_is_refused(tmp_path, stack):
+    path = tmp_path / "s.ome.tif"
+    write_tiff(path, stack)
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path, voxel_size=(1, 0, 0.3))
+    one_line_error(exc, "voxel size")
+
+
+@pytest.mark.parametrize(
+    "name, role",
+    [("mNeptune2.5", "R"), ("NEP", "R"), ("n2.5", "R"), ("CyOFP1.5", "G"), ("cyo", "G"),
+     ("mTagBFP2", "B"), ("TagRFP-T", "W"), ("RFP", "W"), ("GCaMP6s", "GFP"), ("EGFP", "GFP"),
+     ("w", "W"), ("DIC", None), ("", None), (None, None)],
+)
+def test_role_from_name(name, role):
+    assert role_from_name(name) == role
+
+
+def test_ambiguous_names_give_no_role(tmp_path):
+    data = np.zeros((2, 3, 8, 8), np.uint16)
+    stack = Stack(data, (1, 0.3, 0.3), [None, None], channel_names=["TagRFP", "RFP 2"])
+    path = tmp_path / "two_rfp.ome.tif"
+    write_tiff(path, stack)
+    assert read_stack(path).channel_roles == [None, None]
+
+
+def test_big_tiff_is_read_lazily(tmp_path, stack, monkeypatch):
+    path = tmp_path / "s.ome.tif"
+    write_tiff(path, stack)
+    monkeypatch.setattr(images, "LAZY_BYTES", 0)
+    got = read_stack(path)
+    assert got.is_lazy
+    np.testing.assert_array_equal(np.asarray(got.data), stack.data)
+    np.testing.assert_array_equal(got.channel("B"), stack.data[2])
+
+
+# ----- NWB -----------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def neurons():
+    return NeuronTable(
+        xyz=[[3.0, 2.5, 1.5], [6.3, 4.0, 4.5], [1.2, 1.0, 3.0]], labels=["AVAL", "RMDDR?", ""]
+    )
+
+
+def test_nwb_round_trip(tmp_path, stack, neurons):
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, stack, neurons)
+    got = read_stack(path)
+    np.testing.assert_array_equal(np.asarray(got.data), stack.data)
+    assert got.voxel_size_zyx == pytest.approx(stack.voxel_size_zyx)
+    assert got.channel_roles == ["R", "G", "B", "W"]
+    assert got.channel_names == NAMES
+    table = read_nwb_neurons(path)
+    assert list(table.labels) == ["AVAL", "RMDDR", ""]
+    assert list(table.label_conf) == [1.0, 0.5, 0.0]
+    # voxel_mask stores whole voxels: positions come back on the grid (0.3, 0.25, 1.5 µm).
+    np.testing.assert_allclose(table.xyz, neurons.xyz, atol=0.76)
+    assert set(table.colours) == {"R", "G", "B", "W"}
+
+
+def test_nwb_roles_without_rgbw_and_one_based(tmp_path, stack):
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, stack)
+    with h5py.File(path, "a") as f:
+        f["acquisition/NeuroPALImageRaw/RGBW_channels"][...] = [4, 1, 2, 3]  # 1-based, MATLAB style
+    assert read_stack(path).channel_roles == ["G", "B", "W", "R"]
+    with h5py.File(path, "a") as f:
+        del f["acquisition/NeuroPALImageRaw/RGBW_channels"]
+    assert read_stack(path).channel_roles == ["R", "G", "B", "W"]  # from the channel names
+
+
+def test_nwb_without_voxel_size_or_image(tmp_path, stack):
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, stack)
+    with h5py.File(path, "a") as f:
+        del f["general/optophysiology/NeuroPALImVol/grid_spacing"]
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path)
+    one_line_error(exc, "voxel size")
+    assert read_stack(path, voxel_size=(1, 1, 1)).voxel_size_zyx == (1, 1, 1)
+    with h5py.File(path, "a") as f:
+        del f["acquisition/NeuroPALImageRaw"]
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path)
+    one_line_error(exc, "no NeuroPAL image")
+    with pytest.raises(FdlcError) as exc:
+        read_nwb_neurons(path)
+    one_line_error(exc, "no neuron segmentation")
+
+
+def test_truncated_nwb_is_refused(tmp_path, stack):
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, stack)
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) // 3])
+    with pytest.raises(FdlcError) as exc:
+        read_stack(path)
+    one_line_error(exc, str(path))
+
+
+def test_ragged_character_labels_are_joined():
+    assert _text(np.array([b"A", b"V", b"A", b"L"], dtype=object)) == "AVAL"
+    assert _text(["R", "M", "D", "?"]) == "RMD?"
+    assert _text(b"AVAR") == "AVAR"
+
+
+# ----- ND2 (cannot be written: a stand-in with ND2File's interface is injected) ---------------
+
+
+class FakeND2:
+    """The part of ``nd2.ND2File`` that the reader uses."""
+
+    def __init__(self, data, sizes, voxel=(0.3, 0.3, 1.2), names=("mNeptune", "CyOFP", "mTagBFP", "TagRFP")):
+        self._data = data
+        self.sizes = sizes
+        self.dtype = data.dtype
+        self._voxel = voxel
+        self.metadata = SimpleNamespace(
+            channels=[SimpleNamespace(channel=SimpleNamespace(name=n)) for n in names]
+        )
+        self.closed = False
+
+    def voxel_size(self, channel=0):
+        x, y, z = self._voxel
+        return SimpleNamespace(x=x, y=y, z=z)
+
+    def asarray(self):
+        return self._data
+
+    def to_dask(self):
+        import dask.array as da
+
+        return da.from_array(self._data)
+
+    def close(self):
+        self.closed = True
+
+
+def test_nd2_through_a_fake_file(tmp_path):
+    data = np.arange(6 * 4 * 10 * 12, dtype=np.uint16).reshape(6, 4, 10, 12)  # Z, C, Y, X
+    fake = FakeND2(data, {"Z": 6, "C": 4, "Y": 10, "X": 12})
+    got = read_nd2(tmp_path / "w.nd2", opener=lambda p: fake)
+    assert got.data.shape == (4, 6, 10, 12)
+    np.testing.assert_array_equal(got.data[2], data[:, 2])
+    assert got.voxel_size_zyx == pytest.approx((1.2, 0.3, 0.3))
+    assert got.channel_roles == ["R", "G", "B", "W"]
+    assert fake.closed
+
+
+def test_nd2_via_read_stack(tmp_path, monkeypatch):
+    import nd2
+
+    data = np.zeros((1, 5, 3, 8, 8), np.uint16)  # T=1 is squeezed away
+    fake = FakeND2(data, {"T": 1, "Z": 5, "C": 3, "Y": 8, "X": 8}, names=("TagRFP-T", "GCaMP", "DIC"))
+    monkeypatch.setattr(nd2, "ND2File", lambda path: fake)
+    path = tmp_path / "w.nd2"
+    path.write_bytes(b"\xda\xce\xbe\x0a" + bytes(64))
+    got = read_stack(path)
+    assert got.channel_roles == ["W", "GFP", None]
+    monkeypatch.setattr(images, "LAZY_BYTES", 0)
+    assert read_stack(path).is_lazy
+
+
+def test_nd2_problems(tmp_path):
+    def broken(path):
+        raise OSError("File not a valid ND2 file\nsecond line")
+
+    with pytest.raises(FdlcError) as exc:
+        read_nd2(tmp_path / "w.nd2", opener=broken)
+    one_line_error(exc, "not a readable ND2 file")
+    movie = FakeND2(np.zeros((3, 5, 8, 8), np.uint16), {"T": 3, "Z": 5, "Y": 8, "X": 8}, names=())
+    with pytest.raises(FdlcError) as exc:
+        read_nd2(tmp_path / "w.nd2", opener=lambda p: movie)
+    one_line_error(exc, "time points")
+    flat = FakeND2(np.zeros((2, 8, 8), np.uint16), {"C": 2, "Y": 8, "X": 8}, voxel=(1.0, 1.0, 1.0))
+    with pytest.raises(FdlcError) as exc:
+        read_nd2(tmp_path / "w.nd2", opener=lambda p: flat)
+    one_line_error(exc, "2D")
+    uncalibrated = FakeND2(np.zeros((4, 8, 8), np.uint16), {"Z": 4, "Y": 8, "X": 8}, voxel=(1.0, 1.0, 1.0), names=())
+    with pytest.raises(FdlcError) as exc:
+        read_nd2(tmp_path / "w.nd2", opener=lambda p: uncalibrated)
+    one_line_error(exc, "voxel size")
