@@ -25,8 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--axes", help="axes of a TIFF that does not record them, e.g. ZCYX")
     parser.add_argument("--diameter-um", type=float, default=3.0, help="typical nucleus diameter in µm (default 3)")
     parser.add_argument(
-        "--threshold", type=float, default=4.0,
-        help="minimum detection strength in noise SDs (default 4; lower finds dimmer nuclei)",
+        "--threshold", type=float, default=6.0,
+        help="minimum detection strength in noise SDs (default 6; lower finds dimmer nuclei)",
     )
     parser.add_argument("--out", required=True, help="output neuron table (CSV)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")

@@ -317,3 +317,35 @@ def _gut(zyx, p: RenderParams, shape, vox, rng) -> np.ndarray | None:
         if prof is not None:
             gut[b] += rng.uniform(0.8, 2.0) * prof
     return gut
+
+
+def random_worm(
+    n: int = 60,
+    size_um: Sequence[float] = (50.0, 16.0, 12.0),
+    min_spacing_um: float = 2.6,
+    seed: int = 0,
+) -> NeuronTable:
+    """A quick unnamed "worm" for tests: ``n`` centres in an ellipsoid of ``size_um`` (x, y, z
+    diameters) at least ``min_spacing_um`` apart, with NeuroPAL-like raw R, G, B colours.
+
+    (``napari_fdlc.reference.generate_worm`` makes realistic, named worms from the atlas.)
+    """
+    rng = np.random.default_rng(seed)
+    semi = np.asarray(size_um, dtype=float) / 2
+    points: list[np.ndarray] = []
+    tries = 0
+    while len(points) < n and tries < 200 * n:
+        tries += 1
+        q = rng.uniform(-1, 1, 3)
+        if (q**2).sum() > 1:
+            continue
+        q = q * semi
+        if points and np.min(np.linalg.norm(np.asarray(points) - q, axis=1)) < min_spacing_um:
+            continue
+        points.append(q)
+    if len(points) < n:
+        raise ValueError(f"cannot place {n} neurons {min_spacing_um} µm apart in {tuple(size_um)} µm")
+    xyz = np.asarray(points) + semi
+    on = rng.random((n, 3)) < 0.55
+    raw = np.where(on, rng.uniform(300, 1000, (n, 3)), rng.uniform(20, 80, (n, 3)))
+    return NeuronTable(xyz, {c: raw[:, i] for i, c in enumerate("RGB")}, source=f"random_worm(seed={seed})")

@@ -79,7 +79,7 @@ def detect_nuclei(
     volume: np.ndarray,
     voxel_size_zyx: tuple[float, float, float],
     diameter_um: float = 3.0,
-    threshold: float = 4.0,
+    threshold: float = 6.0,
     min_relative: float = 0.08,
     min_distance_um: float | None = None,
     progress: Progress | None = None,
@@ -264,7 +264,7 @@ def segment_stack(
     stack: Stack,
     diameter_um: float = 3.0,
     progress: Progress | None = None,
-    threshold: float = 4.0,
+    threshold: float = 6.0,
     min_relative: float = 0.08,
 ) -> NeuronTable:
     """Detect nuclei and read their colours: a neuron table in the stack's frame (µm).
