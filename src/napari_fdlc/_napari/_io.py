@@ -1,0 +1,214 @@
+"""npe2 readers, writer and sample data.
+
+- stacks (TIFF / OME-TIFF / NWB / ND2) open as R/G/B/W additive channels with the voxel scale;
+  an NWB file's annotated neurons come along as a Points layer, and a saved review session of
+  the image comes back as its neuron-ID layer;
+- neuron tables (our CSV, NeuroPAL_ID CSV) open as one Points layer;
+- the writer saves a Points layer as a neuron-ID CSV (µm and voxel coordinates + features);
+- the sample is the bundled synthetic NeuroPAL head with its neuron table.
+
+Every problem is an :class:`~napari_fdlc.errors.FdlcError`, raised with a one-line message;
+napari shows it as a notification.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..errors import FdlcError, warn
+from ..review import ReviewSession, find_session
+from ._layers import META_KEY, _short_name, review_points, stack_layers, table_points
+
+STACK_SUFFIXES = (".tif", ".tiff", ".ome.tif", ".ome.tiff", ".nwb", ".nd2")
+RESULT_SUFFIX = " neuron IDs"
+
+
+def _one_path(path):
+    if isinstance(path, (list, tuple)):
+        return str(path[0]) if len(path) == 1 else None
+    return str(path)
+
+
+# ----- stacks --------------------------------------------------------------------------------
+
+
+def get_stack_reader(path):
+    """npe2 reader contribution: TIFF / OME-TIFF / NWB / ND2 stacks."""
+    p = _one_path(path)
+    if p is None or not p.lower().endswith(STACK_SUFFIXES) or os.path.isdir(p):
+        return None
+    return read_stack_layers
+
+
+def read_stack_layers(path) -> list[tuple]:
+    from ..io.images import read_stack
+
+    p = _one_path(path)
+    stack = read_stack(p)
+    layers = stack_layers(stack)
+    if p.lower().endswith(".nwb"):
+        neurons = _nwb_neurons(p, stack)
+        if neurons is not None:
+            layers.append(neurons)
+    restored = restored_session_layer(stack.source, stack.shape_zyx)
+    if restored is not None:
+        layers.append(restored)
+    return layers
+
+
+def _nwb_neurons(path: str, stack):
+    from ..io.images import ImageError
+    from ..io.nwb import read_nwb_neurons
+
+    try:
+        table = read_nwb_neurons(path, colours=False)
+    except ImageError as exc:
+        if "no neuron segmentation" in str(exc):
+            return None
+        warn(str(exc))
+        return None
+    try:
+        from ..segment import measure_colours
+
+        table.colours = {k: v for k, v in measure_colours(stack, table.xyz).items() if k != "GFP"}
+    except Exception as exc:  # colours are a bonus here; the positions and names are what count
+        warn(f"{path}: NWB neuron colours not read ({exc})")
+    return table_points(table, stack.voxel_size_zyx, name=f"{_short_name(path)} neurons")
+
+
+def restored_session_layer(image_key: str, shape_zyx=None):
+    """The neuron-ID layer of a saved review session of ``image_key`` (None when there is none
+    or it does not fit the image)."""
+    path = find_session(image_key)
+    if path is None:
+        return None
+    try:
+        session = ReviewSession.load(path)
+    except FdlcError as exc:
+        warn(f"saved session not restored: {exc}")
+        return None
+    saved_shape = session.settings.get("image_shape")
+    if shape_zyx is not None and saved_shape is not None and list(saved_shape) != list(shape_zyx):
+        warn(f"{path}: saved for an image of shape {saved_shape}, not {list(shape_zyx)}; not restored")
+        return None
+    name = session.settings.get("layer_name") or f"{_short_name(image_key)}{RESULT_SUFFIX}"
+    return review_points(session, name, {"session": str(path), "image": image_key})
+
+
+# ----- neuron tables --------------------------------------------------------------------------
+
+
+def get_table_reader(path):
+    """npe2 reader contribution: our neuron-table CSV and NeuroPAL_ID CSV (as Points)."""
+    p = _one_path(path)
+    if p is None or not p.lower().endswith(".csv") or not os.path.isfile(p):
+        return None
+    try:
+        with open(p, encoding="utf-8-sig", errors="replace") as fh:
+            head = "".join(fh.readline() for _ in range(12))
+    except OSError:
+        return None
+    first = head.splitlines()[0] if head else ""
+    ours = all(c in [h.strip() for h in first.split(",")] for c in ("x_um", "y_um", "z_um"))
+    neuropal = "User ID," in head and "Real X (um)" in head
+    return read_table_layer if (ours or neuropal) else None
+
+
+def read_table_layer(path) -> list[tuple]:
+    from ..table import read_table
+
+    p = _one_path(path)
+    table = read_table(p)
+    voxel = _voxel_from_columns(table)
+    return [table_points(table, voxel)]
+
+
+def _voxel_from_columns(table) -> tuple | None:
+    """Voxel size from ``x_px, y_px, z_px`` columns written beside µm (our exports): lets the
+    points sit on image planes exactly like the stack's."""
+    cols = table.extra.columns
+    if not all(c in cols for c in ("x_px", "y_px", "z_px")):
+        return None
+    size = []
+    for um, px in ((2, "z_px"), (1, "y_px"), (0, "x_px")):
+        v = pd.to_numeric(table.extra[px], errors="coerce").to_numpy(dtype=float)
+        ok = np.isfinite(v) & (np.abs(v) > 1e-6)
+        if not ok.any():
+            return None
+        ratio = table.xyz[ok, um] / v[ok]
+        if not (np.all(ratio > 0) and np.ptp(ratio) < 1e-3 * np.median(ratio)):
+            return None
+        size.append(float(np.median(ratio)))
+    return tuple(size)
+
+
+# ----- writer ---------------------------------------------------------------------------------
+
+
+def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
+    """npe2 writer: a Points layer as a neuron-ID CSV (``x_um, y_um, z_um`` in the world frame,
+    the layer's features, and ``x_px, y_px, z_px`` voxel coordinates when the layer is scaled)."""
+    from ..table import COLOUR_CHANNELS, write_table
+
+    data = np.asarray(data, dtype=float)
+    if data.ndim != 2 or data.shape[1] < 3:
+        raise FdlcError(f"{path}: neuron tables need 3D points (z, y, x)")
+    data = data[:, -3:]
+    scale = np.asarray(attributes.get("scale", (1, 1, 1)), dtype=float)[-3:]
+    translate = np.asarray(attributes.get("translate", (0, 0, 0)), dtype=float)[-3:]
+    world = data * scale + translate
+    df = pd.DataFrame({"x_um": world[:, 2], "y_um": world[:, 1], "z_um": world[:, 0]})
+    feats = attributes.get("features")
+    feats = pd.DataFrame(feats) if feats is not None else pd.DataFrame(index=range(len(df)))
+    feats = feats.reset_index(drop=True)
+    for c in [c for c in COLOUR_CHANNELS if c in feats.columns] + ["label"]:
+        df[c] = feats[c].to_numpy() if c in feats.columns else ""
+    for c in feats.columns:
+        if c not in df.columns and c not in ("neuron", "shown", "x_px", "y_px", "z_px"):
+            df[c] = feats[c].to_numpy()
+    if not np.allclose(scale, 1.0) or not np.allclose(translate, 0.0):
+        df["x_px"], df["y_px"], df["z_px"] = data[:, 2], data[:, 1], data[:, 0]
+    path = str(path)
+    if not path.lower().endswith(".csv"):
+        path += ".csv"
+    write_table(df, path)
+    return [path]
+
+
+# ----- sample ---------------------------------------------------------------------------------
+
+SAMPLE_NAME = "NeuroPAL sample"
+
+
+def make_sample_data() -> list[tuple]:
+    """The bundled NeuroPAL-like head: R/G/B/W channels and its neuron table (ground truth,
+    hidden, names as text), plus its saved review session if there is one."""
+    from ..sample import load_sample
+
+    stack, truth = load_sample()
+    layers = stack_layers(stack, name=SAMPLE_NAME)
+    truth.source = "sample neurons"
+    layers.append(table_points(truth, stack.voxel_size_zyx, name="sample neurons (truth)", visible=False))
+    restored = restored_session_layer(stack.source, stack.shape_zyx)
+    if restored is not None:
+        restored[1]["name"] = f"{SAMPLE_NAME}{RESULT_SUFFIX}"
+        layers.append(restored)
+    return layers
+
+
+def image_key_of(layer) -> str:
+    """What identifies the image of a layer for its session: the file it was read from."""
+    meta = (getattr(layer, "metadata", None) or {}).get(META_KEY) or {}
+    if meta.get("image"):
+        return str(meta["image"])
+    source = getattr(layer, "source", None)
+    if source is not None and getattr(source, "path", None):
+        return str(Path(source.path))
+    if source is not None and getattr(source, "sample", None):
+        plugin, name = source.sample
+        return f"sample:{plugin}:{name}"
+    return f"layer:{layer.name}"

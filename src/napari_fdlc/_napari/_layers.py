@@ -1,0 +1,254 @@
+"""Layer data for napari: stacks as R/G/B/W additive channels, neuron tables as Points.
+
+Conventions (``docs/neuropal_formats_and_tools.md``): one image layer per channel with a
+red/green/blue/gray colormap, additive blending, gamma 0.7 and contrast from the data; the voxel
+size is the layers' ``scale``, so the world is in µm. Neurons are Points in *voxel* coordinates
+with the image's scale (each neuron then sits on exactly one z plane, the one through its
+centre); without a known voxel size they are in µm with scale 1.
+
+Everything here returns napari "layer data tuples" ``(data, kwargs, layer_type)`` or plain
+arrays: no napari import is needed, which keeps the readers light.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from ..errors import FdlcError
+from ..table import COLOUR_CHANNELS, NeuronTable
+
+ROLE_COLORMAP = {"R": "red", "G": "green", "B": "blue", "W": "gray", "GFP": "green"}
+ROLE_LONG = {"R": "mNeptune2.5", "G": "CyOFP1.5", "B": "mTagBFP2", "W": "TagRFP-T", "GFP": "GFP"}
+GAMMA = 0.7
+POINT_SIZE_UM = 3.0  # a nucleus across
+META_KEY = "fdlc"  # layer.metadata[META_KEY]: what napari-fdlc knows about a layer
+
+# Ring colour per status (faces stay transparent so the nucleus colour, the thing a NeuroPAL
+# user reads, is never covered).
+STATUS_COLOURS = {
+    "auto": (1.0, 0.85, 0.1, 1.0),  # yellow: automatic name at or above the threshold
+    "accepted": (0.2, 1.0, 0.2, 1.0),  # green
+    "corrected": (0.2, 0.85, 1.0, 1.0),  # cyan
+    "unsure": (1.0, 0.45, 0.0, 1.0),  # orange
+    "hidden": (0.6, 0.6, 0.6, 0.55),  # grey: automatic name below the threshold, or none
+}
+STATUS_HEX = {k: "#%02x%02x%02x" % tuple(int(255 * c) for c in v[:3]) for k, v in STATUS_COLOURS.items()}
+
+
+def contrast_limits(channel) -> tuple[float, float]:
+    """Display range from the data: median (background) to the bright tail (99.95th
+    percentile, at least mean + 4 SD), from a subsample so that big stacks stay quick."""
+    a = np.asarray(channel[:: max(1, channel.shape[0] // 16)] if channel.ndim == 3 else channel)
+    flat = a.ravel()
+    if flat.size > 2_000_000:
+        flat = flat[:: flat.size // 2_000_000 + 1]
+    flat = flat[np.isfinite(flat)] if np.issubdtype(flat.dtype, np.floating) else flat
+    if flat.size == 0:
+        return (0.0, 1.0)
+    lo = float(np.median(flat))
+    hi = float(max(np.percentile(flat, 99.95), flat.mean() + 4 * flat.std()))
+    hi = min(hi, float(flat.max()))
+    if not hi > lo:
+        hi = lo + 1.0
+    return (lo, hi)
+
+
+def stack_layers(stack, name: str | None = None, source_key: str | None = None) -> list[tuple]:
+    """One image layer per channel: R/G/B/W colormaps, additive, gamma 0.7, µm scale."""
+    base = name or _short_name(stack.source)
+    key = source_key or stack.source
+    layers = []
+    for i, role in enumerate(stack.channel_roles):
+        channel = stack.data[i]
+        label = stack.channel_names[i] if stack.channel_names else (role or f"channel {i}")
+        kwargs = {
+            "name": f"{base} [{role or label}]",
+            "scale": tuple(stack.voxel_size_zyx),
+            "colormap": ROLE_COLORMAP.get(role, "gray"),
+            "blending": "additive",
+            "gamma": GAMMA,
+            "contrast_limits": contrast_limits(channel),
+            "visible": role != "GFP",
+            "axis_labels": ("z", "y", "x"),
+            "metadata": {META_KEY: {"image": key, "role": role, "channel_name": label, "stack_name": base}},
+        }
+        layers.append((channel, kwargs, "image"))
+    return layers
+
+
+def _short_name(source: str) -> str:
+    name = str(source).replace("\\", "/").rsplit("/", 1)[-1]
+    for suffix in (".ome.tiff", ".ome.tif", ".tiff", ".tif", ".nwb", ".nd2", ".csv"):
+        if name.lower().endswith(suffix):
+            return name[: -len(suffix)]
+    return name
+
+
+def table_points(
+    table: NeuronTable,
+    voxel_size_zyx=None,
+    name: str | None = None,
+    visible: bool = True,
+) -> tuple:
+    """A neuron table as one Points layer (features = the table's columns, text = names)."""
+    features = table.to_dataframe().drop(columns=["x_um", "y_um", "z_um"])
+    features = _plain_features(features)
+    coords, scale = points_coordinates(table.xyz, voxel_size_zyx)
+    named = bool(table.named.any())
+    kwargs = {
+        "name": name or _short_name(table.source),
+        "scale": scale,
+        "size": _point_size(scale),
+        "features": features,
+        "face_color": "transparent",
+        "border_color": "white",
+        "border_width": 0.12,
+        "border_width_is_relative": True,
+        "visible": visible,
+        "axis_labels": ("z", "y", "x"),
+        "metadata": {META_KEY: {"table": table.source}},
+    }
+    if named:
+        kwargs["text"] = {"string": "{label}", "size": 9, "color": "white", "anchor": "upper_left"}
+    return (coords, kwargs, "points")
+
+
+def points_coordinates(xyz_um: np.ndarray, voxel_size_zyx=None) -> tuple[np.ndarray, tuple]:
+    """(N, 3) z, y, x data coordinates and the layer scale for positions in µm."""
+    zyx = np.asarray(xyz_um, dtype=float).reshape(-1, 3)[:, ::-1]
+    if voxel_size_zyx is None:
+        return zyx.copy(), (1.0, 1.0, 1.0)
+    vox = np.asarray(voxel_size_zyx, dtype=float)
+    return zyx / vox, tuple(float(v) for v in vox)
+
+
+def _point_size(scale) -> float:
+    """Points are sized in data units: one nucleus across in x/y."""
+    return POINT_SIZE_UM / float(np.mean(np.asarray(scale)[-2:]))
+
+
+def layer_xyz_um(layer) -> np.ndarray:
+    """Positions of a Points layer in µm (world coordinates), x, y, z."""
+    data = np.asarray(layer.data, dtype=float)
+    if data.ndim != 2 or data.shape[1] < 3:
+        raise FdlcError(f"layer '{layer.name}': neurons need 3D points (z, y, x); this layer has {data.shape[1] if data.ndim == 2 else 0} dimensions")
+    data = data[:, -3:]
+    scale = np.asarray(layer.scale, dtype=float)[-3:]
+    translate = np.asarray(layer.translate, dtype=float)[-3:]
+    return (data * scale + translate)[:, ::-1]
+
+
+def _plain_features(df: pd.DataFrame) -> pd.DataFrame:
+    """napari features cannot hold pandas' nullable/arrow string dtypes reliably: use object."""
+    out = pd.DataFrame(index=range(len(df)))
+    for c in df.columns:
+        col = df[c]
+        if pd.api.types.is_numeric_dtype(col) and not pd.api.types.is_bool_dtype(col):
+            out[str(c)] = col.to_numpy(dtype=float, na_value=np.nan)
+        elif pd.api.types.is_bool_dtype(col):
+            out[str(c)] = col.to_numpy(dtype=bool)
+        else:
+            out[str(c)] = np.asarray(["" if _missing(v) else str(v) for v in col], dtype=object)
+    return out
+
+
+def _missing(v) -> bool:
+    try:
+        return v is None or bool(pd.isna(v))
+    except (TypeError, ValueError):
+        return False
+
+
+def table_from_layer(layer, use_label: bool = False) -> NeuronTable:
+    """A neuron table from any Points layer: positions in µm (world), colours from features
+    R, G, B, W when present, names from feature ``label`` when ``use_label``."""
+    xyz = layer_xyz_um(layer)
+    n = len(xyz)
+    if n == 0:
+        raise FdlcError(f"layer '{layer.name}': no points")
+    feats = layer.features if len(layer.features) == n else pd.DataFrame(index=range(n))
+    colours = {}
+    for c in COLOUR_CHANNELS:
+        if c in feats.columns:
+            v = pd.to_numeric(feats[c], errors="coerce").to_numpy(dtype=float)
+            if np.isfinite(v).any():
+                v[~np.isfinite(v)] = np.nanmedian(v)
+                colours[c] = v
+    labels = None
+    if use_label:
+        for col in ("label", "user_id", "name"):
+            if col in feats.columns:
+                labels = np.asarray(["" if _missing(v) else str(v) for v in feats[col]], dtype=object)
+                break
+    from ..table import _drop_duplicate_names, parse_name
+
+    label_conf = None
+    if labels is not None:
+        parsed = [parse_name(v) for v in labels]
+        labels = np.array([p[0] for p in parsed], dtype=object)
+        label_conf = np.array([p[1] for p in parsed])
+        labels, label_conf = _drop_duplicate_names(labels, label_conf, f"layer '{layer.name}'")
+    return NeuronTable(xyz, colours, labels, label_conf, source=f"layer '{layer.name}'")
+
+
+def named_count(layer) -> int:
+    """Number of named points in a Points layer (feature ``label``)."""
+    feats = getattr(layer, "features", None)
+    if feats is None or "label" not in feats.columns:
+        return 0
+    return int(sum(1 for v in feats["label"] if not _missing(v) and str(v).strip() not in ("", "?")))
+
+
+def review_features(session) -> pd.DataFrame:
+    """The features of the result layer: what a user (or a script) reads per neuron."""
+    df = pd.DataFrame(index=range(len(session)))
+    df["neuron"] = np.arange(len(session))
+    df["label"] = np.asarray(session.display_names(), dtype=object)
+    df["auto_id"] = np.asarray(session.auto_id, dtype=object)
+    df["auto_conf"] = session.auto_conf
+    cands = [session.candidates(i) + [("", 0.0)] * 3 for i in range(len(session))]
+    for k in range(3):
+        df[f"cand_{k + 1}"] = np.asarray([c[k][0] for c in cands], dtype=object)
+        df[f"prob_{k + 1}"] = np.asarray([c[k][1] for c in cands], dtype=float)
+    df["user_id"] = np.asarray(session.user_id, dtype=object)
+    df["user_conf"] = session.user_conf
+    df["status"] = np.asarray(session.status, dtype=object)
+    df["shown"] = np.asarray([bool(x) for x in session.final_names()], dtype=bool)
+    for c in COLOUR_CHANNELS:
+        if c in session.table.colours:
+            df[c] = session.table.colours[c]
+    return df
+
+
+def review_colours(session) -> np.ndarray:
+    """(N, 4) ring colours: status for user decisions, yellow/grey for automatic names."""
+    shown = session.auto_shown()
+    out = np.empty((len(session), 4))
+    for i, st in enumerate(session.status):
+        key = st if st != "auto" else ("auto" if shown[i] else "hidden")
+        out[i] = STATUS_COLOURS[key]
+    return out
+
+
+def review_points(session, name: str, metadata: dict | None = None) -> tuple:
+    """Layer data tuple of the result layer for a review session."""
+    coords, scale = points_coordinates(session.table.xyz, session.voxel_size_zyx)
+    kwargs = {
+        "name": name,
+        "scale": scale,
+        "size": _point_size(scale),
+        "features": review_features(session),
+        "face_color": "transparent",
+        "border_color": review_colours(session),
+        "border_width": 0.14,
+        "border_width_is_relative": True,
+        "text": review_text(),
+        "axis_labels": ("z", "y", "x"),
+        "metadata": {META_KEY: dict(metadata or {})},
+    }
+    return (coords, kwargs, "points")
+
+
+def review_text() -> dict:
+    return {"string": "{label}", "size": 10, "color": "white", "anchor": "upper_left"}

@@ -1,0 +1,1279 @@
+"""The Auto-label dock widget: detect, name, review and export the neurons of a NeuroPAL stack.
+
+The widget is a face: the review state lives in a Qt-free :class:`napari_fdlc.review.ReviewSession`
+that this widget displays (one Points layer whose features, ring colours and text follow the
+session) and forwards to. Every action is a plain method, usable from a script::
+
+    _, w = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    w.auto_label()                 # returns when the result is in the layer
+    w.set_threshold(0.4); w.accept(12); w.assign(3, "AVAL"); w.undo()
+    w.export("ids.csv")
+
+Heavy work (segmentation, identification) runs in a ``thread_worker``; the GUI never waits on
+it (``auto_label(wait=True)``, the default for scripts, spins a local event loop). Errors from
+the core are :class:`~napari_fdlc.errors.FdlcError`: they become napari notifications.
+
+Tests (and users with their own model) inject the model and templates::
+
+    w.identifier = Identifier(CorrespondenceModel(), ...)   # default: the shipped weights
+    w.set_templates([labelled_table, ...])                   # default: built-in reference panel
+"""
+
+from __future__ import annotations
+
+import sys
+import traceback
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+from qtpy.QtCore import QEventLoop, QObject, Qt, QTimer, Signal
+from qtpy.QtGui import QColor
+from qtpy.QtWidgets import (
+    QAbstractItemView,
+    QCheckBox,
+    QComboBox,
+    QCompleter,
+    QDoubleSpinBox,
+    QFileDialog,
+    QFormLayout,
+    QGridLayout,
+    QGroupBox,
+    QHBoxLayout,
+    QHeaderView,
+    QLabel,
+    QLineEdit,
+    QMessageBox,
+    QProgressBar,
+    QPushButton,
+    QScrollArea,
+    QSizePolicy,
+    QSlider,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+from ..errors import FdlcError
+from ..review import (
+    DEFAULT_THRESHOLD,
+    ReviewSession,
+    carry_decisions,
+    decisions_from_frame,
+    session_file_for,
+)
+from ..table import COLOUR_CHANNELS, NeuronTable
+from ._io import RESULT_SUFFIX, image_key_of
+from ._layers import (
+    META_KEY,
+    STATUS_HEX,
+    _short_name,
+    named_count,
+    points_coordinates,
+    review_colours,
+    review_features,
+    review_points,
+    table_from_layer,
+)
+
+if TYPE_CHECKING:
+    import napari
+
+ROLES = ("R", "G", "B", "W")
+SEGMENT = "Detect nuclei in the image"
+BUILTIN = "Built-in reference panel"
+SCRIPTED = "Templates given by script"
+FROM_FILE = "Labelled table file…"
+NONE = "(none)"
+
+# key, method name, help text. Bound on the neuron-ID layer (so they win over the Points layer's
+# own 1/2/3/A keys) and on the viewer.
+KEYS = (
+    ("A", "accept", "accept the name of the selected neuron"),
+    ("1", "pick_1", "give it candidate 1"),
+    ("2", "pick_2", "give it candidate 2"),
+    ("3", "pick_3", "give it candidate 3"),
+    ("U", "unsure", "mark its name unsure (?, confidence 0.5)"),
+    ("C", "clear", "clear your decision (the automatic name applies again)"),
+    ("T", "type_name", "type a name (Enter commits)"),
+    ("N", "next", "next neuron (lowest confidence first)"),
+    ("Shift-N", "previous", "previous neuron"),
+    ("Control-Z", "undo", "undo"),
+    ("Control-Shift-Z", "redo", "redo"),
+)
+
+
+class _Failed:
+    """What a job returns when the core raised an FdlcError."""
+
+    def __init__(self, exc: FdlcError):
+        self.exc = exc
+
+
+class _Signals(QObject):
+    progress = Signal(float, str)  # emitted from the worker thread, delivered on the GUI thread
+
+
+class AutoLabelWidget(QWidget):
+    """Auto-label dock widget; see the module docstring for the scripting interface."""
+
+    def __init__(self, napari_viewer: "napari.viewer.Viewer", parent: QWidget | None = None):
+        super().__init__(parent)
+        self.viewer = napari_viewer
+        self.session: ReviewSession | None = None
+        self.layer = None  # the neuron-ID Points layer
+        self.identifier = None  # None: the shipped model (napari_fdlc.identify.default_identifier)
+        self.last_error: str | None = None
+        self._script_templates: list[NeuronTable] | None = None
+        self._file_templates: dict[str, NeuronTable] = {}
+        self._worker = None
+        self._busy = False
+        self._stack = None  # the Stack of the last run (colours of points added by hand)
+        self._guard = 0  # > 0 while the widget itself changes layers / controls
+        self._known_names: list[str] | None = None
+        self._signals = _Signals()
+        self._signals.progress.connect(self._on_progress)
+        self._build_ui()
+        self._connect_viewer()
+        self._refresh_choices()
+        self._adopt_existing()
+        self._refresh_all()
+
+    # =========================================================================================
+    # UI
+    def _build_ui(self) -> None:
+        outer = QVBoxLayout(self)
+        outer.setContentsMargins(0, 0, 0, 0)
+        scroll = QScrollArea()
+        scroll.setWidgetResizable(True)
+        scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        outer.addWidget(scroll)
+        body = QWidget()
+        scroll.setWidget(body)
+        layout = QVBoxLayout(body)
+
+        # --- input -----------------------------------------------------------------------------
+        box = QGroupBox("Image and neurons")
+        form = QFormLayout(box)
+        self.role_combos: dict[str, QComboBox] = {}
+        for role, text in zip(ROLES, ("R (mNeptune)", "G (CyOFP)", "B (BFP)", "W (TagRFP-T)")):
+            combo = _combo()
+            combo.setToolTip(f"image layer holding the {text} channel")
+            self.role_combos[role] = combo
+            form.addRow(text, combo)
+        self.neurons_combo = _combo()
+        self.neurons_combo.setToolTip("detect nuclei in the image, or use the points of an existing layer")
+        form.addRow("Neurons", self.neurons_combo)
+        self.diameter_spin = QDoubleSpinBox()
+        self.diameter_spin.setRange(1.0, 10.0)
+        self.diameter_spin.setSingleStep(0.5)
+        self.diameter_spin.setValue(3.0)
+        self.diameter_spin.setSuffix(" µm")
+        form.addRow("Nucleus diameter", self.diameter_spin)
+        layout.addWidget(box)
+
+        box = QGroupBox("Template")
+        form = QFormLayout(box)
+        self.template_combo = _combo()
+        self.template_combo.setToolTip("where names come from: the built-in reference panel, or a labelled worm")
+        self.template_combo.activated.connect(self._on_template_activated)
+        form.addRow("Names from", self.template_combo)
+        self.colour_check = QCheckBox("use NeuroPAL colour")
+        self.colour_check.setChecked(True)
+        form.addRow("", self.colour_check)
+        layout.addWidget(box)
+
+        row = QHBoxLayout()
+        self.run_button = QPushButton("Auto-label")
+        self.run_button.setToolTip("detect (if asked) and name every neuron; your decisions are kept")
+        self.run_button.clicked.connect(lambda: self._gui(self.auto_label, wait=False))
+        self.relabel_button = QPushButton("Re-label")
+        self.relabel_button.setToolTip("name the other neurons again, with your decisions fixed as constraints")
+        self.relabel_button.clicked.connect(lambda: self._gui(self.relabel, wait=False))
+        row.addWidget(self.run_button)
+        row.addWidget(self.relabel_button)
+        layout.addLayout(row)
+        self.progress_bar = QProgressBar()
+        self.progress_bar.setRange(0, 100)
+        self.progress_bar.setValue(0)
+        self.progress_bar.setTextVisible(True)
+        self.progress_bar.setFormat("")
+        layout.addWidget(self.progress_bar)
+
+        # --- threshold ---------------------------------------------------------------------------
+        box = QGroupBox("Confidence threshold")
+        grid = QGridLayout(box)
+        self.threshold_slider = QSlider(Qt.Orientation.Horizontal)
+        self.threshold_slider.setRange(0, 100)
+        self.threshold_slider.setValue(int(round(DEFAULT_THRESHOLD * 100)))
+        self.threshold_slider.valueChanged.connect(self._on_slider)
+        self.threshold_label = QLabel(f"{DEFAULT_THRESHOLD:.2f}")
+        self.coverage_label = QLabel("")
+        self.hide_check = QCheckBox("hide points without a shown name")
+        self.hide_check.toggled.connect(lambda _: self._refresh_layer())
+        grid.addWidget(self.threshold_slider, 0, 0)
+        grid.addWidget(self.threshold_label, 0, 1)
+        grid.addWidget(self.coverage_label, 1, 0, 1, 2)
+        grid.addWidget(self.hide_check, 2, 0, 1, 2)
+        layout.addWidget(box)
+
+        # --- review ------------------------------------------------------------------------------
+        box = QGroupBox("Review")
+        v = QVBoxLayout(box)
+        self.current_label = QLabel("select a neuron")
+        self.current_label.setWordWrap(True)
+        v.addWidget(self.current_label)
+        form = QFormLayout()
+        self.candidate_combo = _combo()
+        self.candidate_combo.setToolTip("top-3 candidates with probabilities: choose one to give it")
+        self.candidate_combo.activated.connect(self._on_candidate_activated)
+        form.addRow("Candidates", self.candidate_combo)
+        self.name_edit = QLineEdit()
+        self.name_edit.setPlaceholderText("type a name, Enter (AVAL? = unsure)")
+        self.name_edit.returnPressed.connect(self._on_name_entered)
+        self._completer = QCompleter([])
+        self._completer.setCaseSensitivity(Qt.CaseSensitivity.CaseInsensitive)
+        self._completer.setFilterMode(Qt.MatchFlag.MatchStartsWith)
+        self.name_edit.setCompleter(self._completer)
+        form.addRow("Name", self.name_edit)
+        v.addLayout(form)
+        grid = QGridLayout()
+        self.accept_button = QPushButton("Accept (A)")
+        self.unsure_button = QPushButton("Unsure (U)")
+        self.clear_button = QPushButton("Clear (C)")
+        self.prev_button = QPushButton("◀ Prev (⇧N)")
+        self.next_button = QPushButton("Next (N) ▶")
+        self.undo_button = QPushButton("Undo")
+        self.redo_button = QPushButton("Redo")
+        self.undo_button.setToolTip("Ctrl-Z")
+        self.redo_button.setToolTip("Ctrl-Shift-Z")
+        self.accept_button.clicked.connect(lambda: self._on_current(self.accept))
+        self.unsure_button.clicked.connect(lambda: self._on_current(self.mark_unsure))
+        self.clear_button.clicked.connect(lambda: self._on_current(self.clear))
+        self.prev_button.clicked.connect(lambda: self._gui(self.previous_neuron))
+        self.next_button.clicked.connect(lambda: self._gui(self.next_neuron))
+        self.undo_button.clicked.connect(lambda: self._gui(self.undo))
+        self.redo_button.clicked.connect(lambda: self._gui(self.redo))
+        for k, b in enumerate((self.accept_button, self.unsure_button, self.clear_button)):
+            grid.addWidget(b, 0, k)
+        grid.addWidget(self.prev_button, 1, 0)
+        grid.addWidget(self.next_button, 1, 1)
+        grid.addWidget(self.undo_button, 2, 0)
+        grid.addWidget(self.redo_button, 2, 1)
+        v.addLayout(grid)
+        self.neuron_table = QTableWidget(0, 4)
+        self.neuron_table.setHorizontalHeaderLabels(["#", "name", "conf", "status"])
+        self.neuron_table.verticalHeader().setVisible(False)
+        self.neuron_table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.neuron_table.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
+        self.neuron_table.setSelectionMode(QAbstractItemView.SelectionMode.SingleSelection)
+        self.neuron_table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
+        self.neuron_table.setMinimumHeight(180)
+        self.neuron_table.setToolTip("neurons by confidence, lowest first: click one to go there")
+        self.neuron_table.cellClicked.connect(self._on_table_clicked)
+        v.addWidget(QLabel("Neurons, lowest confidence first"))
+        v.addWidget(self.neuron_table)
+        layout.addWidget(box)
+
+        # --- export --------------------------------------------------------------------------------
+        box = QGroupBox("Export")
+        h = QHBoxLayout(box)
+        self.export_button = QPushButton("CSV…")
+        self.export_button.setToolTip("neuron table with final names, automatic and user columns, µm and voxel coordinates")
+        self.export_npid_button = QPushButton("NeuroPAL_ID CSV…")
+        self.export_button.clicked.connect(lambda: self._export_dialog("fdlc"))
+        self.export_npid_button.clicked.connect(lambda: self._export_dialog("neuropal_id"))
+        h.addWidget(self.export_button)
+        h.addWidget(self.export_npid_button)
+        layout.addWidget(box)
+        self.session_label = QLabel("")
+        self.session_label.setWordWrap(True)
+        self.session_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        layout.addWidget(self.session_label)
+
+        # --- help --------------------------------------------------------------------------------
+        self.help_box = QGroupBox("Keys (with the neuron-ID layer selected)")
+        self.help_box.setCheckable(True)
+        self.help_box.setChecked(True)
+        hv = QVBoxLayout(self.help_box)
+        rows = "".join(f"<tr><td><b>{k.replace('Control', 'Ctrl')}</b></td><td>{text}</td></tr>" for k, _, text in KEYS)
+        legend = " ".join(
+            f"<span style='color:{STATUS_HEX[s]}'>●</span> {s}"
+            for s in ("auto", "accepted", "corrected", "unsure", "hidden")
+        )
+        self.help_label = QLabel(
+            f"<table>{rows}</table><p>Rings: {legend} (below threshold / no name).<br>"
+            "Every edit is saved at once; reopening the image restores the session.</p>"
+        )
+        self.help_label.setWordWrap(True)
+        hv.addWidget(self.help_label)
+        self.help_box.toggled.connect(self.help_label.setVisible)
+        layout.addWidget(self.help_box)
+        layout.addStretch(1)
+        self.setSizePolicy(QSizePolicy.Policy.Preferred, QSizePolicy.Policy.Expanding)
+        self.setMinimumWidth(300)
+
+    # =========================================================================================
+    # viewer wiring
+    def _connect_viewer(self) -> None:
+        layers = self.viewer.layers
+        layers.events.inserted.connect(self._on_layer_inserted)
+        layers.events.removed.connect(self._on_layer_removed)
+        layers.events.changed.connect(self._refresh_choices)
+        self._bind_keys(self.viewer)
+
+    def _bind_keys(self, provider) -> None:
+        actions: dict[str, Callable[[], object]] = {
+            "accept": lambda: self._on_current(self.accept),
+            "pick_1": lambda: self._on_current(lambda i: self.pick_candidate(i, 1)),
+            "pick_2": lambda: self._on_current(lambda i: self.pick_candidate(i, 2)),
+            "pick_3": lambda: self._on_current(lambda i: self.pick_candidate(i, 3)),
+            "unsure": lambda: self._on_current(self.mark_unsure),
+            "clear": lambda: self._on_current(self.clear),
+            "type_name": self._focus_name,
+            "next": lambda: self._gui(self.next_neuron),
+            "previous": lambda: self._gui(self.previous_neuron),
+            "undo": lambda: self._gui(self.undo),
+            "redo": lambda: self._gui(self.redo),
+        }
+        for key, action, _ in KEYS:
+            fn = actions[action]
+            provider.bind_key(key, lambda _obj=None, fn=fn: fn(), overwrite=True)
+
+    def _focus_name(self) -> None:
+        self.name_edit.setFocus()
+        self.name_edit.selectAll()
+
+    def _on_layer_inserted(self, event) -> None:
+        layer = event.value
+        self._refresh_choices()
+        if self._guard:
+            return
+        meta = (layer.metadata or {}).get(META_KEY) or {}
+        if _is_points(layer) and meta.get("session"):
+            self._gui(self._adopt, layer)
+        elif _is_image(layer):
+            # after the reader's other layers (a restored session layer comes right after)
+            QTimer.singleShot(0, lambda: self._restore_for_image(layer))
+
+    def _on_layer_removed(self, event) -> None:
+        if event.value is self.layer:
+            self._unlink()
+        self._refresh_choices()
+
+    def _adopt_existing(self) -> None:
+        for layer in self.viewer.layers:
+            meta = (layer.metadata or {}).get(META_KEY) or {}
+            if _is_points(layer) and meta.get("session"):
+                self._gui(self._adopt, layer)
+
+    def _restore_for_image(self, image_layer) -> None:
+        """An image with a saved session but no neuron-ID layer (opened by another reader):
+        bring the session back."""
+        from ._io import restored_session_layer
+
+        if self._busy or image_layer not in self.viewer.layers:
+            return
+        key = image_key_of(image_layer)
+        for layer in self.viewer.layers:
+            meta = (layer.metadata or {}).get(META_KEY) or {}
+            if _is_points(layer) and meta.get("image") == key and meta.get("session"):
+                return
+        restored = restored_session_layer(key, tuple(image_layer.data.shape[-3:]))
+        if restored is not None:
+            data, kwargs, _ = restored
+            layer = self.viewer.add_points(data, **kwargs)  # inserted -> adopted
+            self._notify_info(f"restored the saved session of {_short_name(key)} ({kwargs['metadata'][META_KEY]['session']})")
+            return layer
+
+    # =========================================================================================
+    # choices in the combo boxes
+    def _refresh_choices(self, *_) -> None:
+        images = [layer for layer in self.viewer.layers if _is_image(layer)]
+        points = [layer for layer in self.viewer.layers if _is_points(layer)]
+        with self._guarded():
+            for role, combo in self.role_combos.items():
+                current = combo.currentText()
+                combo.clear()
+                combo.addItem(NONE)
+                combo.addItems([layer.name for layer in images])
+                guess = current if current in [layer.name for layer in images] else None
+                if guess is None:
+                    guess = next((layer.name for layer in images if _layer_role(layer) == role), NONE)
+                combo.setCurrentText(guess)
+            current = self.neurons_combo.currentText()
+            self.neurons_combo.clear()
+            self.neurons_combo.addItem(SEGMENT)
+            self.neurons_combo.addItems([layer.name for layer in points])
+            if current in [layer.name for layer in points] or current == SEGMENT:
+                self.neurons_combo.setCurrentText(current)
+            current = self.template_combo.currentText()
+            self.template_combo.clear()
+            if self._script_templates is not None:
+                self.template_combo.addItem(SCRIPTED)
+            self.template_combo.addItem(BUILTIN)
+            for layer in points:
+                if layer is not self.layer and named_count(layer) > 0:
+                    self.template_combo.addItem(f"layer: {layer.name}")
+            for name in self._file_templates:
+                self.template_combo.addItem(name)
+            self.template_combo.addItem(FROM_FILE)
+            items = [self.template_combo.itemText(i) for i in range(self.template_combo.count())]
+            if current in items and current != FROM_FILE:
+                self.template_combo.setCurrentText(current)
+            elif self._script_templates is not None:
+                self.template_combo.setCurrentText(SCRIPTED)
+            else:
+                self.template_combo.setCurrentText(BUILTIN)
+
+    def _on_template_activated(self, index: int) -> None:
+        if self.template_combo.itemText(index) != FROM_FILE:
+            return
+        path, _ = QFileDialog.getOpenFileName(self, "Labelled neuron table", "", "CSV (*.csv);;All files (*)")
+        if path:
+            self._gui(self.add_template_file, path)
+        else:
+            self._refresh_choices()
+
+    # =========================================================================================
+    # scripting API: inputs
+    def set_templates(self, templates) -> None:
+        """Use these labelled worms as templates (NeuronTables or CSV paths); ``None`` goes back
+        to the built-in reference panel."""
+        from ..table import read_table
+
+        if templates is None:
+            self._script_templates = None
+        else:
+            tables = [read_table(t) if isinstance(t, (str, Path)) else t for t in templates]
+            for t in tables:
+                if not isinstance(t, NeuronTable):
+                    raise FdlcError(f"template {t!r}: give a NeuronTable or a CSV path")
+                if not t.named.any():
+                    raise FdlcError(f"{t.source}: the template has no named neuron")
+            self._script_templates = tables
+        self._known_names = None
+        self._refresh_choices()
+
+    def add_template_file(self, path) -> str:
+        """Read a labelled neuron table and offer it as a template (and choose it)."""
+        from ..table import read_table
+
+        table = read_table(path)
+        if not table.named.any():
+            raise FdlcError(f"{path}: the table has no named neuron; a template needs names")
+        name = f"file: {Path(path).name}"
+        self._file_templates[name] = table
+        self._refresh_choices()
+        self.template_combo.setCurrentText(name)
+        return name
+
+    def set_channels(self, **roles) -> None:
+        """Choose the image layer of each role, e.g. ``set_channels(R='red', W='white')``."""
+        for role, name in roles.items():
+            if role not in self.role_combos:
+                raise FdlcError(f"channel role {role}: use R, G, B or W")
+            name = getattr(name, "name", name) or NONE
+            if self.role_combos[role].findText(name) < 0:
+                raise FdlcError(f"no image layer named '{name}'")
+            self.role_combos[role].setCurrentText(name)
+
+    def set_neurons(self, source) -> None:
+        """Where neurons come from: ``'segment'`` or a Points layer (or its name)."""
+        name = SEGMENT if source in (None, "segment", SEGMENT) else getattr(source, "name", source)
+        if self.neurons_combo.findText(name) < 0:
+            raise FdlcError(f"no points layer named '{name}'")
+        self.neurons_combo.setCurrentText(name)
+
+    def set_template(self, choice: str) -> None:
+        """Choose the template entry: 'builtin', 'script', a layer name, or a file entry."""
+        text = {"builtin": BUILTIN, "script": SCRIPTED}.get(choice, choice)
+        if self.template_combo.findText(text) < 0:
+            text = f"layer: {choice}"
+        if self.template_combo.findText(text) < 0:
+            raise FdlcError(f"no template '{choice}'")
+        self.template_combo.setCurrentText(text)
+
+    def _chosen_images(self) -> dict[str, object]:
+        out = {}
+        for role, combo in self.role_combos.items():
+            name = combo.currentText()
+            if name and name != NONE and name in self.viewer.layers:
+                out[role] = self.viewer.layers[name]
+        return out
+
+    def _make_stack(self, images: dict[str, object]):
+        from ..io.images import Stack
+
+        if not images:
+            raise FdlcError("no image chosen: pick the image layer of at least one channel (W to detect nuclei)")
+        layers = list(images.values())
+        shapes = {tuple(layer.data.shape[-3:]) for layer in layers}
+        if any(layer.data.ndim < 3 for layer in layers):
+            raise FdlcError("the chosen image layers must be 3D stacks (z, y, x)")
+        if len(shapes) != 1:
+            raise FdlcError(f"the chosen channels differ in shape ({', '.join(map(str, sorted(shapes)))}); choose channels of one stack")
+        scales = {tuple(np.round(np.asarray(layer.scale[-3:], dtype=float), 9)) for layer in layers}
+        if len(scales) != 1:
+            raise FdlcError("the chosen channels have different voxel sizes (layer scale); choose channels of one stack")
+        arrays = [layer.data if layer.data.ndim == 3 else layer.data[(0,) * (layer.data.ndim - 3)] for layer in layers]
+        if all(isinstance(a, np.ndarray) for a in arrays):
+            data = np.stack(arrays)
+        else:
+            import dask.array as da
+
+            data = da.stack([da.asarray(a) for a in arrays])
+        key_layer = images.get("W") or layers[0]
+        return Stack(
+            data,
+            tuple(float(v) for v in layers[0].scale[-3:]),
+            list(images.keys()),
+            source=image_key_of(key_layer),
+            channel_names=[layer.name for layer in layers],
+        )
+
+    def _templates(self):
+        """(templates or None for the built-in panel, description)."""
+        text = self.template_combo.currentText()
+        if text == SCRIPTED and self._script_templates is not None:
+            return self._script_templates, f"{len(self._script_templates)} template(s) given by script"
+        if text.startswith("layer: "):
+            name = text[len("layer: "):]
+            if name not in self.viewer.layers:
+                raise FdlcError(f"template layer '{name}' is gone; choose another template")
+            return [table_from_layer(self.viewer.layers[name], use_label=True)], text
+        if text in self._file_templates:
+            return [self._file_templates[text]], text
+        return None, BUILTIN
+
+    # =========================================================================================
+    # scripting API: running
+    @property
+    def busy(self) -> bool:
+        return self._busy
+
+    def auto_label(self, wait: bool = True):
+        """Detect (or take) the neurons, name them, and show the result in one Points layer.
+
+        User decisions already made on this image are kept and passed as constraints. With
+        ``wait`` (default) returns the layer once it holds the result (None on error); without,
+        returns at once (the Auto-label button) — call :meth:`wait` to block.
+        """
+        self._check_idle()
+        images = self._chosen_images()
+        source = self.neurons_combo.currentText()
+        templates, template_text = self._templates()
+        use_colour = self.colour_check.isChecked()
+        diameter = float(self.diameter_spin.value())
+        identifier = self.identifier
+        stack = self._make_stack(images) if images else None
+        image_key = stack.source if stack is not None else None
+
+        own = source != SEGMENT and self.layer is not None and source == self.layer.name and self.session is not None
+        given_table = None
+        decisions = {}
+        if own:
+            given_table = self.session.table
+        elif source != SEGMENT:
+            if source not in self.viewer.layers:
+                raise FdlcError(f"no points layer '{source}'")
+            points = self.viewer.layers[source]
+            given_table = table_from_layer(points)
+            decisions = decisions_from_frame(points.features) if len(points.features) == len(given_table) else {}
+            if image_key is None:
+                image_key = image_key_of(points)
+        elif stack is None:
+            raise FdlcError("no image chosen to detect nuclei in: pick the W (TagRFP-T) channel layer")
+        previous = self.session if (self.session is not None and not own and self.session.image == image_key) else None
+        voxel = stack.voxel_size_zyx if stack is not None else (self.session.voxel_size_zyx if own else None)
+        own_decisions = self.session.decisions() if own else None
+        signals = self._signals
+
+        def work():
+            from ..identify import label_neurons
+
+            table = given_table
+            if table is None:
+                from ..segment import segment_stack
+
+                table = segment_stack(stack, diameter_um=diameter, progress=lambda f, m: signals.progress.emit(0.6 * f, m))
+            elif stack is not None and not any(c in table.colours for c in ("R", "G", "B")):
+                from ..segment import measure_colours
+
+                signals.progress.emit(0.3, "reading colours")
+                colours = {k: v for k, v in measure_colours(stack, table.xyz, radius_um=0.3 * diameter).items() if k in COLOUR_CHANNELS}
+                table = NeuronTable(table.xyz, colours, extra=table.extra, source=table.source)
+            if len(table) == 0:
+                raise FdlcError("no nuclei found: check the W channel and the nucleus diameter")
+            carried = dict(decisions)
+            if previous is not None and previous.decisions():
+                carried.update(carry_decisions(previous, table.xyz))
+            if own_decisions is not None:
+                carried = own_decisions
+            fixed = {i: d.name for i, d in carried.items()}
+            signals.progress.emit(0.65, f"naming {len(table)} neurons…")
+            labelling = label_neurons(table, templates, use_colour=use_colour, fixed=fixed or None, identifier=identifier)
+            signals.progress.emit(1.0, "done")
+            return table, labelling, carried
+
+        def done(result):
+            table, labelling, carried = result
+            settings = {"template": template_text, "colour": use_colour, "diameter_um": diameter}
+            if own:
+                self.session.settings.update(settings)
+                self.session.set_labelling(labelling, "auto-label")
+            else:
+                self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source)
+            self._status(f"{len(table)} neurons named — {self._coverage_text()}")
+
+        self._stack = stack if stack is not None else self._stack
+        return self._start(work, done, wait, "auto-label")
+
+    def relabel(self, wait: bool = True):
+        """Name the undecided neurons again with every user decision fixed as a constraint
+        (``label_neurons(..., fixed=...)``); user decisions are never changed."""
+        self._check_idle()
+        session = self._need_session()
+        templates, template_text = self._templates()
+        use_colour = self.colour_check.isChecked()
+        identifier = self.identifier
+        table = session.table
+        fixed = session.fixed()
+        signals = self._signals
+
+        def work():
+            from ..identify import label_neurons
+
+            signals.progress.emit(0.1, f"re-labelling with {len(fixed)} fixed name(s)…")
+            lab = label_neurons(table, templates, use_colour=use_colour, fixed=fixed or None, identifier=identifier)
+            signals.progress.emit(1.0, "done")
+            return lab
+
+        def done(labelling):
+            if self.session is not session or session.table is not table:
+                self._notify_warning("the neurons changed while re-labelling; run Re-label again")
+                return
+            session.settings.update({"template": template_text, "colour": use_colour})
+            session.set_labelling(labelling, "re-label")
+            self._status(f"re-labelled with {len(fixed)} fixed name(s) — {self._coverage_text()}")
+
+        return self._start(work, done, wait, "re-label")
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block (processing GUI events) until the running job is done; True when idle."""
+        if not self._busy:
+            return True
+        loop = QEventLoop()
+        worker = self._worker
+        worker.finished.connect(loop.quit)
+        if timeout is not None:
+            QTimer.singleShot(int(timeout * 1000), loop.quit)
+        if self._busy:
+            loop.exec()
+        try:
+            worker.finished.disconnect(loop.quit)
+        except (TypeError, RuntimeError):
+            pass
+        return not self._busy
+
+    def _check_idle(self) -> None:
+        if self._busy:
+            raise FdlcError("a job is still running; wait for it to finish")
+
+    def _start(self, work, done, wait: bool, what: str):
+        from napari.qt.threading import create_worker
+
+        self.last_error = None
+
+        def guarded_work():
+            try:
+                return work()
+            except FdlcError as exc:  # shown as a one-line notification, not a traceback
+                return _Failed(exc)
+
+        # _ignore_errors: an unexpected exception is shown by napari's notification (with its
+        # traceback, it is a bug) instead of being re-raised in the GUI thread.
+        worker = create_worker(guarded_work, _start_thread=False, _ignore_errors=True)
+        self._worker = worker
+        self._busy = True
+        self._set_running(True, what)
+
+        def on_returned(result):
+            if isinstance(result, _Failed):
+                self._report_error(result.exc)
+                return
+            try:
+                done(result)
+            except FdlcError as exc:
+                self._report_error(exc)
+
+        def on_errored(exc):
+            self.last_error = f"unexpected error ({type(exc).__name__}: {exc})"
+            self._status(self.last_error)
+
+        def on_finished():
+            self._busy = False
+            self._worker = None
+            self._set_running(False, what)
+
+        worker.returned.connect(on_returned)
+        worker.errored.connect(on_errored)
+        worker.finished.connect(on_finished)
+        worker.start()
+        if wait:
+            self.wait()
+            return self.layer if self.last_error is None else None
+        return worker
+
+    def _set_running(self, running: bool, what: str) -> None:
+        self.run_button.setEnabled(not running)
+        self.relabel_button.setEnabled(not running and self.session is not None and self.session.labelled)
+        if running:
+            self.progress_bar.setValue(0)
+            self.progress_bar.setFormat(f"{what}…")
+        else:
+            self.progress_bar.setValue(100 if self.last_error is None else 0)
+
+    def _on_progress(self, fraction: float, message: str) -> None:
+        self.progress_bar.setValue(int(round(100 * max(0.0, min(1.0, fraction)))))
+        self.progress_bar.setFormat(f"{message} (%p%)")
+
+    def _new_session(self, table, labelling, carried, image_key, voxel, stack, settings, source_name) -> None:
+        key = image_key or f"layer:{source_name}"
+        path = session_file_for(key)
+        session = ReviewSession(
+            table, labelling, threshold=self.threshold, voxel_size_zyx=voxel, image=key, path=path
+        )
+        session.settings.update(settings)
+        if stack is not None:
+            session.settings["image_shape"] = list(stack.shape_zyx)
+        name = f"{_short_name(key.split(':')[-1] if key.startswith('layer:') else key)}{RESULT_SUFFIX}"
+        if self.layer is not None and self.session is not None and self.session.image == key:
+            name = self.layer.name
+        session.settings["layer_name"] = name
+        if carried:
+            session.seed_decisions(carried)
+        session.autosave()
+        old_layer = self.layer if (self.layer is not None and self.layer.name == name) else None
+        self._link(session, old_layer)
+        if source_name != SEGMENT and source_name in self.viewer.layers and self.viewer.layers[source_name] is not self.layer:
+            self.viewer.layers[source_name].visible = False
+        if session.last_save_error:
+            self._notify_warning(session.last_save_error)
+
+    # =========================================================================================
+    # session <-> layer
+    def _adopt(self, layer) -> None:
+        meta = (layer.metadata or {}).get(META_KEY) or {}
+        path = meta.get("session")
+        if layer is self.layer:
+            return
+        if self.session is not None and self.session.path is not None and str(self.session.path) == str(path):
+            session = self.session
+        else:
+            session = ReviewSession.load(path)
+        self._link(session, layer)
+        self._status(f"session {Path(path).name}: {self._coverage_text()}")
+
+    def _link(self, session: ReviewSession, layer=None) -> None:
+        """Show ``session`` in ``layer`` (a new Points layer when None)."""
+        if self.session is not None:
+            self.session.disconnect(self._on_session)
+        if self.layer is not None:
+            self._disconnect_layer(self.layer)
+        self.session = session
+        meta = {"session": str(session.path) if session.path else None, "image": session.image}
+        if layer is None:
+            data, kwargs, _ = review_points(session, session.settings.get("layer_name", "neuron IDs"), meta)
+            with self._guarded():
+                layer = self.viewer.add_points(data, **kwargs)
+        else:
+            with self._guarded():
+                layer.metadata = {**(layer.metadata or {}), META_KEY: meta}
+        self.layer = layer
+        session.connect(self._on_session)
+        layer.events.data.connect(self._on_layer_data)
+        layer.selected_data.events.items_changed.connect(self._on_selection)
+        self._bind_keys(layer)
+        self._refresh_layer(structure=True)
+        with self._guarded():
+            self.viewer.layers.selection.active = layer
+            layer.mode = "select"
+        with self._guarded():
+            self.threshold_slider.setValue(int(round(session.threshold * 100)))
+        self._known_names = None
+        self._refresh_choices()
+        self._refresh_all()
+
+    def _disconnect_layer(self, layer) -> None:
+        for signal, slot in ((layer.events.data, self._on_layer_data), (layer.selected_data.events.items_changed, self._on_selection)):
+            try:
+                signal.disconnect(slot)
+            except (TypeError, RuntimeError, ValueError):
+                pass
+
+    def _unlink(self) -> None:
+        if self.session is not None:
+            self.session.disconnect(self._on_session)
+        if self.layer is not None:
+            self._disconnect_layer(self.layer)
+        self.session = None
+        self.layer = None
+        self._refresh_all()
+
+    def _on_session(self, kind: str, rows) -> None:
+        if kind == "save_error":
+            self._notify_warning(self.session.last_save_error or "the session could not be saved")
+            return
+        if kind == "current":
+            if not self._guard:
+                self._show_current(centre=True)
+            return
+        self._refresh_layer(structure=(kind == "structure"))
+        self._refresh_all()
+
+    def _refresh_layer(self, structure: bool = False) -> None:
+        layer, session = self.layer, self.session
+        if layer is None or session is None:
+            return
+        with self._guarded():
+            if structure or len(layer.data) != len(session):
+                coords, scale = points_coordinates(session.table.xyz, session.voxel_size_zyx)
+                current = np.asarray(layer.data)
+                if current.shape != coords.shape or not np.allclose(current, coords):
+                    layer.selected_data = set()
+                    layer.data = coords
+            layer.features = review_features(session)
+            layer.border_color = review_colours(session)
+            if self.hide_check.isChecked():
+                layer.shown = np.asarray(layer.features["shown"], dtype=bool)
+            else:
+                layer.shown = np.ones(len(session), dtype=bool)
+            layer.refresh_text()
+
+    def _on_layer_data(self, event) -> None:
+        """Points added, removed or moved by hand: the session follows (undoable)."""
+        if self._guard or self.session is None or self.layer is None:
+            return
+        action = str(getattr(event, "action", ""))
+        if action not in ("added", "removed", "changed", "ActionType.ADDED", "ActionType.REMOVED", "ActionType.CHANGED"):
+            return
+        try:
+            self._sync_structure(action.rsplit(".", 1)[-1].lower(), getattr(event, "data_indices", ()))
+        except FdlcError as exc:
+            self._report_error(exc)
+
+    def _sync_structure(self, action: str, indices) -> None:
+        from ._layers import layer_xyz_um
+
+        session = self.session
+        old = session.table
+        xyz = layer_xyz_um(self.layer)
+        n_old, n_new = len(old), len(xyz)
+        if action == "removed" or n_new < n_old:
+            removed = {int(i) for i in np.atleast_1d(indices)} if n_old - n_new == len(np.atleast_1d(indices)) else None
+            if removed is None:
+                return self._refresh_layer(structure=True)
+            kept = [i for i in range(n_old) if i not in removed]
+            description = f"remove {len(removed)} neuron(s)"
+        elif action == "added" or n_new > n_old:
+            kept = list(range(n_old)) + [None] * (n_new - n_old)
+            description = f"add {n_new - n_old} neuron(s)"
+        else:
+            kept = list(range(n_old))
+            description = "move neuron(s)"
+        colours = {}
+        for c, v in old.colours.items():
+            col = np.full(n_new, np.nan)
+            for j, o in enumerate(kept):
+                if o is not None:
+                    col[j] = v[o]
+            colours[c] = col
+        new_rows = [j for j, o in enumerate(kept) if o is None]
+        if new_rows:
+            self._fill_colours(colours, xyz, kept, new_rows)
+        extra = old.extra.iloc[[o for o in kept if o is not None]].reset_index(drop=True) if all(o is not None for o in kept) else None
+        if extra is None:
+            extra = old.extra.reindex([o if o is not None else -1 for o in kept]).reset_index(drop=True)
+        table = NeuronTable(xyz, colours, extra=extra, source=old.source)
+        session.replace_table(table, kept, description)
+
+    def _fill_colours(self, colours: dict, xyz, kept, new_rows) -> None:
+        """Colours of neurons added by hand: measured in the image on the scale of the others
+        (z-scores across all neurons, as the detector does), else the median."""
+        measured = None
+        if self._stack is not None:
+            try:
+                from ..segment import measure_colours
+
+                raw = measure_colours(self._stack, xyz, zscore=False)
+                measured = {}
+                for c, v in raw.items():
+                    sd = v.std()
+                    measured[c] = (v - v.mean()) / sd if sd > 0 else np.zeros_like(v)
+            except Exception:
+                measured = None
+        for c, col in colours.items():
+            if measured is not None and c in measured:
+                col[new_rows] = measured[c][new_rows]
+            else:
+                col[new_rows] = np.nanmedian(col) if np.isfinite(col).any() else 0.0
+
+    def _on_selection(self, *_) -> None:
+        if self._guard or self.layer is None or self.session is None:
+            return
+        selected = list(self.layer.selected_data)
+        if len(selected) == 1 and selected[0] < len(self.session):
+            with self._guarded():
+                self.session.select(int(selected[0]))
+            self._show_current(centre=False)
+
+    # =========================================================================================
+    # scripting API: review
+    @property
+    def threshold(self) -> float:
+        return self.threshold_slider.value() / 100.0
+
+    def set_threshold(self, p: float) -> None:
+        """Hide automatic names below confidence ``p`` (0-1); user decisions stay shown."""
+        from ..review import _check_threshold
+
+        p = _check_threshold(p)
+        with self._guarded():
+            self.threshold_slider.setValue(int(round(p * 100)))
+        self.threshold_label.setText(f"{p:.2f}")
+        if self.session is not None:
+            self.session.set_threshold(p)
+        self._refresh_all()
+
+    def _on_slider(self, value: int) -> None:
+        self.threshold_label.setText(f"{value / 100:.2f}")
+        if not self._guard:
+            self._gui(self.set_threshold, value / 100.0)
+
+    def accept(self, i: int) -> bool:
+        """Confirm the name of neuron ``i`` (row in the Points layer)."""
+        return self._edit(lambda s: s.accept(i), i)
+
+    def assign(self, i: int, name: str) -> bool:
+        """Give neuron ``i`` the name ``name`` ('AVAL?' marks it unsure, '' clears)."""
+        return self._edit(lambda s: s.assign(i, name), i)
+
+    def pick_candidate(self, i: int, k: int) -> bool:
+        """Give neuron ``i`` its k-th candidate (1, 2, 3)."""
+        return self._edit(lambda s: s.pick_candidate(i, k), i)
+
+    def mark_unsure(self, i: int) -> bool:
+        """Mark the name of neuron ``i`` unsure (?, confidence 0.5)."""
+        return self._edit(lambda s: s.mark_unsure(i), i)
+
+    def clear(self, i: int) -> bool:
+        """Remove the user's decision on neuron ``i``."""
+        return self._edit(lambda s: s.clear(i), i)
+
+    def undo(self) -> str | None:
+        """Undo the last edit (returns its description)."""
+        desc = self._need_session().undo()
+        self._status(f"undone: {desc}" if desc else "nothing to undo")
+        return desc
+
+    def redo(self) -> str | None:
+        desc = self._need_session().redo()
+        self._status(f"redone: {desc}" if desc else "nothing to redo")
+        return desc
+
+    def next_neuron(self) -> int | None:
+        """Go to the next neuron, lowest confidence first: selects it and centres the view."""
+        return self._need_session().next_neuron()
+
+    def previous_neuron(self) -> int | None:
+        return self._need_session().previous_neuron()
+
+    def select_neuron(self, i: int) -> None:
+        """Make neuron ``i`` the current one: select it and centre the view on it."""
+        session = self._need_session()
+        with self._guarded():
+            session.select(i)
+        self._show_current(centre=True)
+
+    def export(self, path, format: str = "fdlc", overwrite: bool = False) -> Path:
+        """Write the reviewed names: ``format='fdlc'`` (our CSV) or ``'neuropal_id'``."""
+        out = self._need_session().export(path, format=format, overwrite=overwrite)
+        self._status(f"exported {out}")
+        return out
+
+    @property
+    def current(self) -> int | None:
+        return None if self.session is None else self.session.current
+
+    def _need_session(self) -> ReviewSession:
+        if self.session is None:
+            raise FdlcError("no neurons labelled yet: run Auto-label first")
+        return self.session
+
+    def _edit(self, action, i) -> bool:
+        session = self._need_session()
+        changed = action(session)
+        if session.current != i:
+            with self._guarded():
+                session.select(i)
+            self._show_current(centre=False)
+        return changed
+
+    def _current_row(self) -> int:
+        session = self._need_session()
+        if self.layer is not None and len(self.layer.selected_data) == 1:
+            i = int(next(iter(self.layer.selected_data)))
+            if i < len(session):
+                return i
+        if session.current is None:
+            raise FdlcError("no neuron selected: click a point, or press N to go to the next one")
+        return session.current
+
+    # =========================================================================================
+    # GUI-side handlers (errors become notifications)
+    def _gui(self, fn, *args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except FdlcError as exc:
+            self._report_error(exc)
+            return None
+
+    def _on_current(self, fn):
+        return self._gui(lambda: fn(self._current_row()))
+
+    def _on_candidate_activated(self, index: int) -> None:
+        if self._guard or self.session is None or self.session.current is None:
+            return
+        self._gui(self.pick_candidate, self.session.current, index + 1)
+
+    def _on_name_entered(self) -> None:
+        text = self.name_edit.text().strip()
+        if not text:
+            return
+        if self._gui(lambda: self.assign(self._current_row(), text)) is not None:
+            self.name_edit.clear()
+            try:  # back to the canvas, so that the review keys work again
+                self.viewer.window._qt_viewer.canvas.native.setFocus()
+            except Exception:
+                pass
+
+    def _on_table_clicked(self, row: int, _col: int) -> None:
+        item = self.neuron_table.item(row, 0)
+        if item is not None:
+            self._gui(self.select_neuron, int(item.text()))
+
+    def _export_dialog(self, format: str) -> None:
+        if self.session is None:
+            return self._report_error(FdlcError("nothing to export: run Auto-label first"))
+        default = self._default_export_path(format)
+        path, _ = QFileDialog.getSaveFileName(
+            self, "Export neuron IDs", str(default), "CSV (*.csv)", options=QFileDialog.Option.DontConfirmOverwrite
+        )
+        if not path:
+            return
+        if not path.lower().endswith(".csv"):
+            path += ".csv"
+        overwrite = False
+        if Path(path).exists():
+            answer = QMessageBox.question(self, "Overwrite?", f"{path} exists. Replace it?")
+            if answer != QMessageBox.StandardButton.Yes:
+                return
+            overwrite = True
+        out = self._gui(self.export, path, format=format, overwrite=overwrite)
+        if out is not None:
+            self._notify_info(f"exported {out}")
+
+    def _default_export_path(self, format: str) -> Path:
+        key = self.session.image or "neurons"
+        stem = _short_name(key)
+        folder = Path(key).parent if (not key.startswith(("sample:", "layer:", "<")) and Path(key).parent.is_dir()) else Path.home()
+        from ..review import _writable_folder
+
+        if not _writable_folder(folder):
+            folder = Path.home()
+        return folder / f"{stem}_{'ids' if format == 'fdlc' else 'neuropal_id'}.csv"
+
+    def _report_error(self, exc: BaseException) -> None:
+        if isinstance(exc, FdlcError):
+            message = str(exc)
+        else:
+            message = f"unexpected error ({type(exc).__name__}: {exc}); please report it"
+            traceback.print_exception(type(exc), exc, exc.__traceback__, file=sys.stderr)
+        self.last_error = message
+        self._status(message)
+        self._notify_error(message)
+
+    def _notify_error(self, message: str) -> None:
+        from napari.utils.notifications import show_error
+
+        show_error(message)
+
+    def _notify_warning(self, message: str) -> None:
+        from napari.utils.notifications import show_warning
+
+        show_warning(message)
+
+    def _notify_info(self, message: str) -> None:
+        from napari.utils.notifications import show_info
+
+        show_info(message)
+
+    def _status(self, message: str) -> None:
+        self.progress_bar.setFormat(message[:120])
+
+    # =========================================================================================
+    # display
+    def _coverage_text(self) -> str:
+        s = self.session
+        if s is None:
+            return ""
+        c = s.counts()
+        return (
+            f"{s.coverage():.0%} of {len(s)} neurons named — {c['accepted']} accepted, {c['corrected']} corrected, "
+            f"{c['unsure']} unsure, {c['hidden']} below threshold"
+        )
+
+    def _refresh_all(self) -> None:
+        s = self.session
+        has = s is not None
+        for b in (self.accept_button, self.unsure_button, self.clear_button, self.prev_button, self.next_button, self.export_button, self.export_npid_button):
+            b.setEnabled(has)
+        self.relabel_button.setEnabled(has and not self._busy and s.labelled)
+        self.undo_button.setEnabled(has and s.can_undo)
+        self.redo_button.setEnabled(has and s.can_redo)
+        self.coverage_label.setText(self._coverage_text() if has else "no neurons labelled yet")
+        self.session_label.setText(f"Session autosaved to {s.path}" if has and s.path else "")
+        self._fill_table()
+        self._show_current(centre=False)
+        names = self._names()
+        if self._completer.model().rowCount() != len(names):
+            self._completer.model().setStringList(names) if hasattr(self._completer.model(), "setStringList") else None
+
+    def _names(self) -> list[str]:
+        if self._known_names is None:
+            names = set()
+            try:
+                from ..reference import load_atlas
+
+                names.update(str(n) for n in load_atlas().names)
+            except Exception:
+                pass
+            if self.session is not None:
+                names.update(self.session.vocabulary)
+            for t in self._script_templates or []:
+                names.update(t.names)
+            for t in self._file_templates.values():
+                names.update(t.names)
+            self._known_names = sorted(n for n in names if n)
+        return self._known_names
+
+    def _fill_table(self) -> None:
+        s = self.session
+        table = self.neuron_table
+        if s is None:
+            table.setRowCount(0)
+            return
+        order = s.review_order()
+        names = s.display_names()
+        conf = s.review_confidence()
+        status = s.status
+        shown = s.auto_shown()
+        with self._guarded():
+            table.setUpdatesEnabled(False)
+            table.setRowCount(len(order))
+            for r, i in enumerate(order):
+                name = names[i] or (f"({s.auto_id[i]})" if s.auto_id[i] else "—")
+                key = status[i] if status[i] != "auto" else ("auto" if shown[i] else "hidden")
+                for c, text in enumerate((str(i), name, f"{conf[i]:.2f}", status[i])):
+                    item = table.item(r, c)
+                    if item is None:
+                        item = QTableWidgetItem()
+                        table.setItem(r, c, item)
+                    item.setText(text)
+                    if c == 3:
+                        item.setForeground(QColor(STATUS_HEX[key]))
+            if s.current is not None and s.current in order:
+                table.selectRow(order.index(s.current))
+            table.setUpdatesEnabled(True)
+
+    def _show_current(self, centre: bool) -> None:
+        s = self.session
+        with self._guarded():
+            self.candidate_combo.clear()
+            if s is None or s.current is None or s.current >= len(s):
+                self.current_label.setText("select a neuron (click a point, or press N)")
+                return
+            i = s.current
+            name = s.display_names()[i] or "(no name shown)"
+            auto = s.auto_id[i] or "no match"
+            self.current_label.setText(
+                f"<b>Neuron {i}</b>: {name} — {s.status[i]}; automatic: {auto} ({s.auto_conf[i]:.2f})"
+            )
+            for k, (cand, p) in enumerate(s.candidates(i), start=1):
+                self.candidate_combo.addItem(f"{k}. {cand}  ({p:.2f})")
+            if self.layer is not None and set(self.layer.selected_data) != {i}:
+                self.layer.selected_data = {i}
+            order = s.review_order()
+            if i in order:
+                self.neuron_table.selectRow(order.index(i))
+        if centre:
+            self._centre_on(i)
+
+    def _centre_on(self, i: int) -> None:
+        layer = self.layer
+        if layer is None or i >= len(layer.data):
+            return
+        point = np.asarray(layer.data[i], dtype=float)
+        world = point * np.asarray(layer.scale) + np.asarray(layer.translate)
+        ndim = self.viewer.dims.ndim
+        full = np.asarray(self.viewer.dims.point, dtype=float).copy()
+        full[ndim - len(world):] = world
+        displayed = list(self.viewer.dims.displayed)
+        for axis in range(ndim):
+            if axis not in displayed:
+                self.viewer.dims.set_point(axis, full[axis])
+        self.viewer.camera.center = tuple(full[displayed])
+
+    @contextmanager
+    def _guarded(self):
+        self._guard += 1
+        try:
+            yield
+        finally:
+            self._guard -= 1
+
+
+def _combo() -> QComboBox:
+    combo = QComboBox()
+    combo.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+    combo.setMinimumContentsLength(12)
+    return combo
+
+
+def _is_image(layer) -> bool:
+    return type(layer).__name__ == "Image" and getattr(layer, "ndim", 0) >= 3 and not getattr(layer, "rgb", False)
+
+
+def _is_points(layer) -> bool:
+    return type(layer).__name__ == "Points"
+
+
+def _layer_role(layer) -> str | None:
+    meta = (layer.metadata or {}).get(META_KEY) or {}
+    if meta.get("role") in ROLES:
+        return meta["role"]
+    name = layer.name
+    if name.endswith("]") and "[" in name:
+        tag = name[name.rindex("[") + 1 : -1].strip().upper()
+        if tag in ROLES:
+            return tag
+    from ..io.images import role_from_name
+
+    role = role_from_name(name)
+    if role in ROLES:
+        return role
+    cmap = getattr(getattr(layer, "colormap", None), "name", "")
+    return {"red": "R", "green": "G", "blue": "B", "gray": "W", "grey": "W"}.get(cmap)
