@@ -6,14 +6,20 @@ scaled to its own range) when no channel is marked W:
 1. bin in x/y (mean of b x b voxels) until a voxel is about a sixth of a nucleus across: NeuroPAL
    stacks are sampled much finer in x/y than in z, and nuclei are 2-4 µm, so this loses nothing
    and makes everything after it several times faster;
-2. band-pass with a difference of Gaussians whose widths are set in µm, so the anisotropic voxels
-   get anisotropic sigmas: the narrow one (~0.28 diameter) keeps touching nuclei apart, the wide
-   one (~0.8 diameter) removes background, haze and the smooth part of gut autofluorescence;
+2. band-pass with a difference of Gaussians whose widths are set in µm, so anisotropic voxels
+   get anisotropic sigmas. The narrow one (0.2 diameter) and the wide one (0.4 diameter) make it
+   close to a Laplacian of Gaussian: it responds to the curvature of a nucleus rather than to its
+   brightness, so a dim nucleus pressed against a bright one still has its own maximum (a plain
+   smoothing would turn it into a shoulder of its neighbour), and smooth background, haze and
+   gut autofluorescence are removed;
 3. local maxima of the response (a box a little smaller than a nucleus), kept when they exceed a
    noise threshold (a multiple of the response's robust SD) and a fraction of the bright nuclei's
-   response (so a very clean image does not turn texture into detections); then maxima closer
-   than ``min_distance`` (in µm, so the same in z as in x/y) are suppressed, weakest first;
-4. sub-voxel centres by fitting a parabola through the response along each axis.
+   response (so a very clean image does not turn texture into detections);
+4. sub-voxel centres by fitting a parabola through the response along each axis;
+5. maxima closer than 0.8 diameter are merged unless the response dips between them (the
+   "valley" test, sampled along the segment joining them): a large or elongated nucleus has
+   several maxima on one plateau, two touching nuclei have a valley. A fixed minimum distance
+   would have to choose between splitting big nuclei and merging small touching ones.
 
 Colours are read at each centre in a small ellipsoid (radius in µm): the 75th percentile of the
 voxels there (robust to a neighbour's edge and to the nucleus being smaller than the ellipsoid),
@@ -86,13 +92,19 @@ def detect_nuclei(
     sigma_fraction: tuple[float, float] = (0.2, 0.4),
     saddle: float = 0.9,
     merge_distance_um: float | None = None,
+    valley_sd: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Nucleus centres in a Z, Y, X volume.
 
     Returns ``(zyx_um, score)``: centres in µm (voxel ``i`` at ``i * size``) and the band-pass
-    response at each centre in units of the response's noise SD. ``threshold`` is that minimum
-    score; ``min_relative`` the minimum response as a fraction of the 95th percentile of the
-    candidates' responses; ``min_distance_um`` (default 0.4 diameter) the closest two centres may be.
+    response at each centre in units of the response's noise SD, strongest first.
+
+    ``threshold``: minimum score. ``min_relative``: minimum response as a fraction of the 95th
+    percentile of the candidates' responses. ``sigma_fraction``: the two DoG widths as fractions
+    of ``diameter_um``. ``saddle``: two maxima closer than ``merge_distance_um`` (default 0.8
+    diameter) are kept apart only if the response between them falls below ``saddle`` times the
+    weaker one, and by more than ``valley_sd`` noise SDs. ``min_distance_um`` (default 0.3
+    diameter): closer maxima are always merged.
     """
     if diameter_um <= 0 or not np.isfinite(diameter_um):
         raise ImageError(f"nucleus diameter must be a positive number of µm (got {diameter_um})")
@@ -139,7 +151,8 @@ def detect_nuclei(
     # Binned voxel j covers original voxels j*f .. j*f+f-1, so its centre is at j*f + (f-1)/2.
     zyx = (sub_idx * factors + (factors - 1) / 2.0) * vox
     keep = _merge_without_valley(
-        response - med, sub_idx, zyx, values - med, min_distance_um, merge_distance_um or 0.8 * diameter_um, saddle
+        response - med, sub_idx, zyx, values - med, min_distance_um, merge_distance_um or 0.8 * diameter_um,
+        saddle, valley_sd * noise,
     )
     return zyx[keep], (values[keep] - med) / noise
 
@@ -169,13 +182,15 @@ def _merge_without_valley(
     min_distance_um: float,
     merge_distance_um: float,
     saddle: float,
+    min_valley: float = 0.0,
 ) -> np.ndarray:
     """Indices of the maxima to keep (input sorted strongest first).
 
     Two maxima closer than ``merge_distance_um`` are one nucleus unless the response dips
     between them below ``saddle`` times the weaker one: a large or elongated nucleus has several
-    maxima on one plateau, two touching nuclei have a valley. Closer than ``min_distance_um``
-    they are always merged.
+    maxima on one plateau, two touching nuclei have a valley. The valley must also be deeper
+    than ``min_valley`` (a few noise SDs), so noise alone never splits a nucleus. Closer than
+    ``min_distance_um`` they are always merged.
     """
     n = len(zyx_um)
     if n < 2:
@@ -191,7 +206,7 @@ def _merge_without_valley(
     dip = along.reshape(len(pairs), len(t)).min(axis=1)
     weaker = np.minimum(values[pairs[:, 0]], values[pairs[:, 1]])
     dist = np.linalg.norm(zyx_um[pairs[:, 0]] - zyx_um[pairs[:, 1]], axis=1)
-    same = (dip >= saddle * weaker) | (dist < min_distance_um)
+    same = (dip >= saddle * weaker) | (weaker - dip < min_valley) | (dist < min_distance_um)
     removed = np.zeros(n, dtype=bool)
     same_pairs = pairs[same]
     # Weaker maxima in order of strength: merged into a stronger one that is itself kept.
