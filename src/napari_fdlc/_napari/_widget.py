@@ -121,7 +121,8 @@ class AutoLabelWidget(QWidget):
 
     def __init__(self, napari_viewer: "napari.viewer.Viewer", parent: QWidget | None = None):
         super().__init__(parent)
-        self.viewer = napari_viewer
+        # napari hands plugins a proxy of the viewer; layer identity (``is``) needs the real one
+        self.viewer = getattr(napari_viewer, "__wrapped__", napari_viewer)
         self.session: ReviewSession | None = None
         self.layer = None  # the neuron-ID Points layer
         self.identifier = None  # None: the shipped model (napari_fdlc.identify.default_identifier)
@@ -456,6 +457,7 @@ class AutoLabelWidget(QWidget):
             self._script_templates = tables
         self._known_names = None
         self._refresh_choices()
+        self.template_combo.setCurrentText(SCRIPTED if templates is not None else BUILTIN)
 
     def add_template_file(self, path) -> str:
         """Read a labelled neuron table and offer it as a template (and choose it)."""
@@ -570,6 +572,10 @@ class AutoLabelWidget(QWidget):
         identifier = self.identifier
         stack = self._make_stack(images) if images else None
         image_key = stack.source if stack is not None else None
+        base_name = None
+        if images:
+            key_layer = images.get("W") or next(iter(images.values()))
+            base_name = ((key_layer.metadata or {}).get(META_KEY) or {}).get("stack_name")
 
         own = source != SEGMENT and self.layer is not None and source == self.layer.name and self.session is not None
         given_table = None
@@ -625,7 +631,7 @@ class AutoLabelWidget(QWidget):
                 self.session.settings.update(settings)
                 self.session.set_labelling(labelling, "auto-label")
             else:
-                self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source)
+                self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name)
             self._status(f"{len(table)} neurons named — {self._coverage_text()}")
 
         self._stack = stack if stack is not None else self._stack
@@ -740,7 +746,7 @@ class AutoLabelWidget(QWidget):
         self.progress_bar.setValue(int(round(100 * max(0.0, min(1.0, fraction)))))
         self.progress_bar.setFormat(f"{message} (%p%)")
 
-    def _new_session(self, table, labelling, carried, image_key, voxel, stack, settings, source_name) -> None:
+    def _new_session(self, table, labelling, carried, image_key, voxel, stack, settings, source_name, base_name=None) -> None:
         key = image_key or f"layer:{source_name}"
         path = session_file_for(key)
         session = ReviewSession(
@@ -749,7 +755,7 @@ class AutoLabelWidget(QWidget):
         session.settings.update(settings)
         if stack is not None:
             session.settings["image_shape"] = list(stack.shape_zyx)
-        name = f"{_short_name(key.split(':')[-1] if key.startswith('layer:') else key)}{RESULT_SUFFIX}"
+        name = f"{base_name or _short_name(key.split(':')[-1] if key.startswith('layer:') else key)}{RESULT_SUFFIX}"
         if self.layer is not None and self.session is not None and self.session.image == key:
             name = self.layer.name
         session.settings["layer_name"] = name

@@ -1,0 +1,105 @@
+"""The demo: napari with the bundled sample and the Auto-label widget.
+
+``run_demo(out_dir, headless=False)`` opens napari for a person to use. With ``headless=True``
+(under Xvfb, for ``make demo`` and the docs) it runs Auto-label on the sample, exports the CSV
+to ``out_dir/labels.csv``, saves a screenshot of the window to ``out_dir/screenshot.png`` and
+returns both paths. Sessions of a headless run go to ``out_dir/sessions`` so that a demo never
+restores (or touches) a user's own review of the sample.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FdlcError
+
+WINDOW_SIZE = (1500, 950)
+
+
+def run_demo(
+    out_dir: str | os.PathLike,
+    headless: bool,
+    *,
+    identifier=None,
+    templates=None,
+    threshold: float | None = None,
+) -> tuple[Path, Path] | None:
+    """Open napari with the sample and the widget; headless: label, export, screenshot.
+
+    ``identifier`` / ``templates`` replace the shipped model / built-in reference panel (tests);
+    ``threshold`` sets the confidence slider before the export (default: the widget's).
+    """
+    import napari
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    old_env = os.environ.get("FDLC_SESSION_DIR")
+    if headless:
+        os.environ["FDLC_SESSION_DIR"] = str(out_dir / "sessions")
+    try:
+        viewer = napari.Viewer(show=not headless, title="napari-fdlc demo")
+        try:
+            viewer.window._qt_window.resize(*WINDOW_SIZE)
+        except AttributeError:
+            pass
+        viewer.open_sample("napari-fdlc", "neuropal")
+        _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+        if identifier is not None:
+            widget.identifier = identifier
+        if templates is not None:
+            widget.set_templates(templates)
+        if not headless:
+            napari.run()
+            return None
+        try:
+            layer = widget.auto_label()
+            if layer is None:
+                raise FdlcError(widget.last_error or "auto-label failed")
+            if threshold is not None:
+                widget.set_threshold(threshold)
+            labels = widget.export(out_dir / "labels.csv", overwrite=True)
+            show_labelled_plane(viewer, layer)
+            shot = out_dir / "screenshot.png"
+            viewer.screenshot(str(shot), canvas_only=False, flash=False)
+            return labels, shot
+        finally:
+            viewer.close()
+    finally:
+        if headless:
+            if old_env is None:
+                os.environ.pop("FDLC_SESSION_DIR", None)
+            else:
+                os.environ["FDLC_SESSION_DIR"] = old_env
+
+
+def show_labelled_plane(viewer, layer) -> int:
+    """Fit the view and go to the z plane showing the most named neurons; returns the plane."""
+    viewer.reset_view()
+    data = np.asarray(layer.data)
+    labels = np.asarray(layer.features["label"], dtype=object)
+    planes = np.rint(data[:, 0]).astype(int)
+    named = planes[labels != ""] if (labels != "").any() else planes
+    best = int(np.bincount(named - named.min()).argmax() + named.min()) if len(named) else 0
+    z_world = best * float(layer.scale[0]) + float(layer.translate[0])
+    viewer.dims.set_point(viewer.dims.ndim - 3, z_world)
+    viewer.layers.selection.active = layer
+    return best
+
+
+def main() -> None:  # python -m napari_fdlc._napari.demo_flow OUT [--headless]
+    import argparse
+
+    parser = argparse.ArgumentParser(description="napari-fdlc demo on the bundled sample")
+    parser.add_argument("out_dir", nargs="?", default="demo_out")
+    parser.add_argument("--headless", action="store_true")
+    args = parser.parse_args()
+    result = run_demo(args.out_dir, args.headless)
+    if result:
+        print("\n".join(str(p) for p in result))
+
+
+if __name__ == "__main__":
+    main()
