@@ -84,7 +84,7 @@ class Block(nn.Module):
         self.norms = nn.ModuleList(nn.LayerNorm(dim) for _ in range(3))
         self.ffn = nn.Sequential(nn.Linear(dim, 2 * dim), nn.GELU(), nn.Linear(2 * dim, dim))
         # One learned locality per head: bias = -softplus(w_h) * |p_i - p_j|^2.
-        self.locality = nn.Parameter(torch.linspace(-2.0, 3.0, heads))
+        self.locality = nn.Parameter(torch.linspace(-1.0, 4.0, heads))
 
     def forward(self, desc, sq_dist, mask):
         # Template and test share the weights; run them as one batch of 2B sets.

@@ -43,6 +43,7 @@ class TrainConfig:
     synthetic_fraction: float = 0.25
     aligned_fraction: float = 0.35
     negative_fraction: float = 0.15
+    max_neurons: int = 112  # crop bigger worms to a window along the body axis (CPU cost ~ N^2)
     seed: int = 0
     eval_every: int = 250
     val_pairs_per_lab: int = 24
@@ -76,6 +77,17 @@ def _augment(table: NeuronTable, rng: np.random.Generator) -> NeuronTable:
     t = table.subset(np.flatnonzero(keep))
     xyz = t.xyz * (1 + rng.uniform(-0.08, 0.08, 3)) + rng.normal(0, 0.4, t.xyz.shape)
     return NeuronTable(xyz, t.colours, t.labels, t.label_conf, source=t.source)
+
+
+def _crop(table: NeuronTable, max_neurons: int, rng) -> NeuronTable:
+    """A contiguous window of at most ``max_neurons`` along the body axis: a smaller field of
+    view, as other labs record, and attention cost that fits a CPU."""
+    if len(table) <= max_neurons:
+        return table
+    x = canonical_frame(table.xyz)[0][:, 0]
+    order = np.argsort(x)
+    start = rng.integers(0, len(table) - max_neurons + 1)
+    return table.subset(np.sort(order[start : start + max_neurons]))
 
 
 def _targets(template: NeuronTable, test: NeuronTable) -> np.ndarray:
@@ -122,15 +134,15 @@ def make_example(template: NeuronTable, test: NeuronTable, target: np.ndarray, r
 def sample_example(worms: list[Worm], rng, cfg: TrainConfig):
     while True:
         if rng.random() < cfg.synthetic_fraction:
-            template = worms[rng.integers(len(worms))].table
+            template = _crop(worms[rng.integers(len(worms))].table, cfg.max_neurons, rng)
             synth = simulate_worm(template, rng, TRAIN_SIM)
             m = len(template)
             target = np.where(synth.origin >= 0, synth.origin, m)
             test = synth.table
         else:
             i, j = rng.choice(len(worms), 2, replace=False)
-            template = _augment(worms[i].table, rng)
-            test = _augment(worms[j].table, rng)
+            template = _crop(_augment(worms[i].table, rng), cfg.max_neurons, rng)
+            test = _crop(_augment(worms[j].table, rng), cfg.max_neurons, rng)
             target = _targets(template, test)
         example = make_example(template, test, target, rng, cfg)
         if example is not None:

@@ -1,0 +1,92 @@
+"""Accuracy, calibration and coverage of any matcher on annotated worms.
+
+Accuracy follows the fDLC paper: the fraction of labelled test neurons whose name also exists
+in the template (or the panel) that are given that name by the one-to-one assignment (top-1),
+or whose name is among the three most likely candidates (top-3).
+
+Protocols:
+* ``pairs`` — within one lab, each worm is the template for the others;
+* ``panel`` — no template: the built-in reference panel (an atlas built without the lab).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .match import Labelling, make_labelling, name_probabilities
+from .table import NeuronTable
+
+
+@dataclass
+class Scores:
+    correct: list = field(default_factory=list)  # top-1 hit per scored neuron
+    top3: list = field(default_factory=list)
+    conf: list = field(default_factory=list)  # auto_conf of the assignment made
+    seconds: list = field(default_factory=list)  # per test volume
+
+    def add(self, result: Labelling, test: NeuronTable, vocabulary: set[str], seconds: float | None = None) -> None:
+        cand, _ = result.candidates(3)
+        for j, truth in enumerate(test.labels):
+            if truth and truth in vocabulary:
+                self.correct.append(result.auto_id[j] == truth)
+                self.top3.append(truth in cand[j])
+                self.conf.append(result.auto_conf[j] if result.auto_id[j] else 0.0)
+        if seconds is not None:
+            self.seconds.append(seconds)
+
+    def summary(self) -> dict:
+        c = np.asarray(self.correct, float)
+        return {
+            "top1": float(c.mean()) if len(c) else float("nan"),
+            "top3": float(np.mean(self.top3)) if len(c) else float("nan"),
+            "n": int(len(c)),
+            "ece": expected_calibration_error(np.asarray(self.conf), c),
+            "ms_per_volume": 1000 * float(np.median(self.seconds)) if self.seconds else float("nan"),
+        }
+
+
+def expected_calibration_error(conf: np.ndarray, correct: np.ndarray, bins: int = 10) -> float:
+    """Mean |accuracy - confidence| over equal-width confidence bins, weighted by bin size."""
+    if len(conf) == 0:
+        return float("nan")
+    edges = np.linspace(0, 1, bins + 1)
+    idx = np.clip(np.digitize(conf, edges[1:-1]), 0, bins - 1)
+    ece = 0.0
+    for b in range(bins):
+        mask = idx == b
+        if mask.any():
+            ece += mask.mean() * abs(correct[mask].mean() - conf[mask].mean())
+    return float(ece)
+
+
+def reliability(conf: np.ndarray, correct: np.ndarray, bins: int = 10) -> list[tuple[float, float, int]]:
+    """(mean confidence, accuracy, count) per confidence bin."""
+    edges = np.linspace(0, 1, bins + 1)
+    idx = np.clip(np.digitize(conf, edges[1:-1]), 0, bins - 1)
+    return [(float(conf[idx == b].mean()), float(correct[idx == b].mean()), int((idx == b).sum()))
+            for b in range(bins) if (idx == b).any()]
+
+
+def coverage_curve(conf: np.ndarray, correct: np.ndarray, thresholds=(0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 0.99)):
+    """(threshold, coverage, accuracy of the labels kept) for the confidence slider."""
+    out = []
+    for t in thresholds:
+        kept = conf >= t
+        out.append((t, float(kept.mean()), float(correct[kept].mean()) if kept.any() else float("nan")))
+    return out
+
+
+def baseline_labelling(match_fn, test: NeuronTable, templates: list[NeuronTable], use_colour: bool) -> Labelling:
+    per_template = [(match_fn(t, test, use_colour)[:, :-1], t.labels) for t in templates]
+    names, probs = name_probabilities(per_template)
+    return make_labelling(names, probs)
+
+
+def pair_list(tables: list[NeuronTable], max_pairs: int | None, seed: int = 0) -> list[tuple[NeuronTable, NeuronTable]]:
+    pairs = [(a, b) for i, a in enumerate(tables) for j, b in enumerate(tables) if i != j]
+    if max_pairs is not None and len(pairs) > max_pairs:
+        keep = np.random.default_rng(seed).choice(len(pairs), max_pairs, replace=False)
+        pairs = [pairs[k] for k in sorted(keep)]
+    return pairs
