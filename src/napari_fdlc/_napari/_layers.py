@@ -171,7 +171,7 @@ def table_from_layer(layer, use_label: bool = False) -> NeuronTable:
     colours = {}
     for c in COLOUR_CHANNELS:
         if c in feats.columns:
-            v = pd.to_numeric(feats[c], errors="coerce").to_numpy(dtype=float)
+            v = pd.to_numeric(feats[c], errors="coerce").to_numpy(dtype=float, copy=True)
             if np.isfinite(v).any():
                 v[~np.isfinite(v)] = np.nanmedian(v)
                 colours[c] = v

@@ -1,0 +1,131 @@
+"""Readers, writer and manifest; sessions beside a user's file; points edited by hand; errors
+shown as notifications; the headless demo."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from napari_fdlc.review import SESSION_SUFFIX
+
+
+def test_manifest_is_valid():
+    from npe2 import PluginManifest
+
+    manifest = PluginManifest.from_distribution("napari-fdlc")
+    manifest.validate_imports()
+    c = manifest.contributions
+    assert {w.display_name for w in c.widgets} == {"Auto-label"}
+    assert [s.key for s in c.sample_data] == ["neuropal"]
+    assert len(c.readers) == 2 and c.writers[0].layer_types == ["points"]
+
+
+def test_open_a_file_label_export_reopen(make_napari_viewer, sample_files, identifier, templates, tmp_path):
+    from napari_fdlc.table import write_neuropal_id, read_table
+
+    stack_path = tmp_path / "worm 1.ome.tif"  # a user's file in a writable folder
+    shutil.copy(sample_files[0], stack_path)
+    viewer = make_napari_viewer()
+    layers = viewer.open(stack_path, plugin="napari-fdlc")
+    assert [layer.colormap.name for layer in layers] == ["red", "green", "blue", "gray"]
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    layer = widget.auto_label()
+    assert layer.name == "worm 1 neuron IDs"
+    session_file = tmp_path / ("worm 1.ome.tif" + SESSION_SUFFIX)
+    assert widget.session.path == session_file and session_file.is_file()
+    widget.set_threshold(0.0)
+    first = int(np.flatnonzero(layer.features["auto_id"] != "")[0])
+    widget.accept(first)
+
+    # --- points edited by hand: the session follows, undoably -------------------------------------
+    n = len(layer.data)
+    layer.add(layer.data[first] + [0, 20, 20])
+    assert len(widget.session) == n + 1 and layer.features["status"][n] == "auto"
+    assert np.isfinite(widget.session.table.colours["R"][n])
+    gone = n - 1 if first != n - 1 else n - 2
+    layer.selected_data = {gone}
+    layer.remove_selected()
+    assert len(widget.session) == n and layer.features["status"][first] == "accepted"
+    assert widget.session.history()[-2:] == ["add 1 neuron(s)", "remove 1 neuron(s)"]
+    widget.undo()
+    widget.undo()
+    assert len(layer.data) == n and len(widget.session) == n
+    assert layer.features["status"][first] == "accepted"
+
+    # --- export, and the table reader puts the points back on the same voxels ---------------------
+    out = widget.export(tmp_path / "ids.csv")
+    (table_layer,) = viewer.open(out, plugin="napari-fdlc")
+    assert np.allclose(table_layer.scale, layer.scale)
+    assert np.allclose(table_layer.data, layer.data, atol=1e-3)
+    assert table_layer.features["label"][first] == layer.features["label"][first]
+    # a NeuroPAL_ID CSV opens as points too
+    npid = tmp_path / "npid.csv"
+    write_neuropal_id(read_table(out), npid)
+    (np_layer,) = viewer.open(npid, plugin="napari-fdlc")
+    assert np.allclose(np_layer.data[:, ::-1], read_table(out).xyz, atol=1e-3)
+    # the writer: a Points layer saved as a neuron-ID CSV
+    from napari_fdlc._napari._io import write_neuron_csv
+
+    data, meta, _ = layer.as_layer_data_tuple()
+    (written,) = write_neuron_csv(str(tmp_path / "saved.csv"), data, meta)
+    back = read_table(written)
+    assert np.allclose(back.xyz, widget.session.table.xyz, atol=1e-4)
+    assert list(pd.read_csv(written, keep_default_na=False)["status"]) == list(layer.features["status"])
+
+    # --- reopen the file in a new viewer: the session comes back beside it --------------------------
+    viewer.close()
+    viewer2 = make_napari_viewer()
+    layers2 = viewer2.open(stack_path, plugin="napari-fdlc")
+    assert layers2[-1].name == "worm 1 neuron IDs"
+    assert layers2[-1].features["status"][first] == "accepted"
+
+
+def test_errors_become_notifications(make_napari_viewer, sample_files, identifier, templates):
+    from napari.utils.notifications import notification_manager
+
+    from napari_fdlc.identify import Identifier
+
+    viewer = make_napari_viewer()
+    viewer.open_sample("napari-fdlc", "neuropal")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    before = len(notification_manager.records)
+    # a core error in the worker thread: one line, no exception in the GUI
+    widget.identifier = Identifier(model=None, device="cpu")
+    widget.set_templates(templates)
+    assert widget.auto_label() is None
+    assert widget.last_error == "no model loaded"
+    assert widget.layer is None
+    # buttons and keys with nothing to act on
+    viewer.layers.selection.active = viewer.layers["NeuroPAL sample [W]"]
+    viewer.window._qt_viewer._key_map_handler.press_key("A")  # bound on the viewer too
+    assert "Auto-label first" in widget.last_error
+    widget.identifier = identifier
+    assert widget.auto_label() is not None and widget.last_error is None
+    widget.layer.selected_data = set()
+    widget.session.select(None)
+    viewer.window._qt_viewer._key_map_handler.press_key("A")
+    assert "no neuron selected" in widget.last_error
+    widget.set_neurons("sample neurons (truth)")
+    widget.set_template("sample neurons (truth)")  # a labelled layer as the template
+    assert widget.auto_label() is not None and widget.last_error is None
+    assert not viewer.layers["sample neurons (truth)"].visible
+    messages = [str(r.message) for r in notification_manager.records[before:]]
+    assert "no model loaded" in messages
+    assert not any("Traceback" in m for m in messages)
+
+
+def test_headless_demo(sample_files, identifier, templates, tmp_path, qtbot):
+    from napari_fdlc._napari.demo_flow import run_demo
+
+    labels, shot = run_demo(tmp_path / "demo", headless=True, identifier=identifier, templates=templates, threshold=0.1)
+    df = pd.read_csv(labels, keep_default_na=False)
+    assert len(df) > 100 and (df["label"] != "").any()
+    from imageio.v3 import imread
+
+    image = imread(shot)
+    assert image.shape[0] > 400 and image.shape[1] > 800
