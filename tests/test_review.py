@@ -294,3 +294,32 @@ def test_replace_table_after_points_edited(session):
     assert session.user_id[:2] == ["AVAL", "SMDVL"] and session.auto_id[3] == ""
     session.undo()
     assert session.table is t and session.status[2] == "corrected"
+
+
+def test_carry_decisions_to_a_new_detection(session):
+    from napari_fdlc.review import carry_decisions
+
+    session.accept(0)
+    session.assign(2, "SMDVL?")
+    t = session.table
+    # new detection: neurons in another order, one moved 1 µm, neuron 0 lost
+    new_xyz = np.vstack([t.xyz[2] + [1.0, 0, 0], t.xyz[1], t.xyz[3], [[90, 90, 9]]])
+    carried = carry_decisions(session, new_xyz)
+    assert set(carried) == {0} and carried[0].name == "SMDVL" and carried[0].status == "unsure"
+    new = ReviewSession(NeuronTable(new_xyz), _labelling())
+    new.seed_decisions(carried)
+    assert new.status == ["unsure", "auto", "auto", "auto"] and new.user_conf[0] == 0.5
+    assert not new.can_undo  # a starting state, not an edit
+    assert new.auto_id[0] == "RMDL"  # the machine's answer of the carried row
+
+
+def test_decisions_read_back_from_an_export(tmp_path, session):
+    from napari_fdlc.review import decisions_from_frame
+
+    session.accept(0)
+    session.pick_candidate(3, 2)
+    session.mark_unsure(1)
+    out = session.export(tmp_path / "ids.csv")
+    d = decisions_from_frame(pd.read_csv(out, keep_default_na=False))
+    assert {i: (x.name, x.status) for i, x in d.items()} == {0: ("AVAL", "accepted"), 1: ("AVAR", "unsure"), 3: ("SMDVL", "corrected")}
+    assert d[3].auto_id == "RMDR"

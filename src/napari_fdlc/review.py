@@ -168,6 +168,65 @@ class Edit:
     rows: list[int] | None = None  # rows touched (None = all)
 
 
+@dataclass
+class Decision:
+    """A user's decision on one neuron, and the machine's answer there when known."""
+
+    name: str
+    conf: float
+    status: str
+    auto_id: str | None = None
+    auto_conf: float | None = None
+
+
+def carry_decisions(old: "ReviewSession", xyz_um: np.ndarray, max_distance_um: float = 1.5) -> dict[int, Decision]:
+    """Map the user decisions of ``old`` onto new neuron positions (e.g. after segmenting the
+    image again): each decided neuron goes to the nearest new neuron within ``max_distance_um``,
+    one to one, closest pairs first."""
+    from scipy.spatial import cKDTree
+
+    decided = old.decisions()
+    xyz_um = np.asarray(xyz_um, dtype=float).reshape(-1, 3)
+    if not decided or len(xyz_um) == 0:
+        return {}
+    rows = np.array(sorted(decided))
+    dist, idx = cKDTree(xyz_um).query(old.table.xyz[rows], k=min(4, len(xyz_um)), distance_upper_bound=max_distance_um)
+    dist, idx = dist.reshape(len(rows), -1), idx.reshape(len(rows), -1)
+    pairs = sorted(
+        (float(d), int(r), int(j)) for r, ds, js in zip(rows, dist, idx) for d, j in zip(ds, js) if np.isfinite(d)
+    )
+    out: dict[int, Decision] = {}
+    used_old: set[int] = set()
+    for _, r, j in pairs:
+        if r in used_old or j in out:
+            continue
+        used_old.add(r)
+        out[j] = decided[r]
+    lost = len(decided) - len(out)
+    if lost:
+        warn(f"{lost} user decision(s) had no neuron within {max_distance_um} µm in the new detection and were not carried over")
+    return out
+
+
+def decisions_from_frame(df: pd.DataFrame) -> dict[int, Decision]:
+    """User decisions stored in a frame with our export columns (``user_id``, ``status``, and
+    ``auto_id``/``auto_conf`` when present), e.g. a CSV written by :meth:`ReviewSession.export`."""
+    if "user_id" not in df.columns:
+        return {}
+    out: dict[int, Decision] = {}
+    status = df["status"] if "status" in df.columns else pd.Series([""] * len(df))
+    for i, (raw, st) in enumerate(zip(df["user_id"], status)):
+        name, conf = parse_name("" if pd.isna(raw) else raw)
+        if not name:
+            continue
+        st = str(st) if str(st) in STATUSES and str(st) != "auto" else ("unsure" if conf == UNSURE_CONF else "corrected")
+        auto = df["auto_id"].iloc[i] if "auto_id" in df.columns else None
+        auto = None if auto is None or pd.isna(auto) else str(auto)
+        ac = pd.to_numeric(df["auto_conf"].iloc[i], errors="coerce") if "auto_conf" in df.columns else np.nan
+        out[i] = Decision(name, conf, st, auto, None if pd.isna(ac) else float(ac))
+    return out
+
+
 Listener = Callable[[str, "list[int] | None"], None]
 
 
@@ -565,6 +624,38 @@ class ReviewSession:
         if threshold != self.threshold:
             self.threshold = threshold
             self._changed("threshold")
+
+    # ----- decisions carried over from elsewhere -----------------------------------------------
+    def decisions(self) -> dict[int, "Decision"]:
+        """Row -> :class:`Decision` for every user decision (with the machine's answer there)."""
+        s = self._s
+        return {
+            i: Decision(s.user_id[i], float(s.user_conf[i]), s.status[i], s.auto_id[i], float(s.auto_conf[i]))
+            for i in range(len(self))
+            if s.status[i] != "auto"
+        }
+
+    def seed_decisions(self, decisions: dict[int, "Decision"]) -> None:
+        """Set user decisions as the starting state (not an edit: nothing to undo), e.g. those
+        of an earlier session or of a table read back from our CSV. Names held twice are
+        dropped with a warning."""
+        s = self._s
+        seen: dict[str, int] = {}
+        for i, d in sorted(decisions.items()):
+            i = self._row(i)
+            if not d.name or d.status not in STATUSES or d.status == "auto":
+                continue
+            if d.name in seen:
+                warn(f"{d.name} decided for neurons {seen[d.name]} and {i}: kept on {seen[d.name]} only")
+                continue
+            seen[d.name] = i
+            s.user_id[i] = d.name
+            s.user_conf[i] = UNSURE_CONF if d.status == "unsure" else 1.0
+            s.status[i] = d.status
+            if d.auto_id is not None:
+                s.auto_id[i] = d.auto_id
+                s.auto_conf[i] = d.auto_conf if d.auto_conf is not None else s.auto_conf[i]
+        self._changed("edit")
 
     # ----- neurons added, removed or moved in the layer ----------------------------------------
     def replace_table(self, table: NeuronTable, kept: list[int | None], description: str = "edit neurons") -> None:
