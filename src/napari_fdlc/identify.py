@@ -85,7 +85,7 @@ class Identifier:
             for s in range(0, k, chunk):
                 t = tests[s : s + chunk]
                 out.append(self.model(tmpl.expand(len(t), -1, -1), t).float().cpu().numpy())
-        return np.concatenate(out) / self.settings.temperature
+        return np.concatenate(out)
 
     def match_pair(self, template: NeuronTable, test: NeuronTable, use_colour: bool = True) -> tuple[np.ndarray, dict]:
         """Probabilities (N_test, M_template + 1) that each test neuron is each template neuron
@@ -108,6 +108,10 @@ class Identifier:
             affine = fit_affine(moved, targets, weight**2)
             moved = apply_affine(moved, affine)
             lp = self._forward(a, moved[None])[0]
+        # Calibration (fitted on training labs) applies to the final answer only, not to the
+        # orientation search or the refinement weights.
+        lp = lp / self.settings.temperature
+        lp = lp - np.logaddexp.reduce(lp, axis=1, keepdims=True)
         if use_colour:
             lp = self._fuse_colour(lp, template, test)
         info = {"orientation": best, "mirrored": best >= 4, "willingness": willingness.tolist()}
