@@ -407,7 +407,7 @@ class ReviewSession:
         path = Path(path) if path is not None else self.path
         if path is None:
             raise FdlcError("no session file given")
-        text = json.dumps(self.to_dict(), indent=1, allow_nan=False)
+        text = json.dumps(self.to_dict(), separators=(",", ":"), allow_nan=False)
         with atomic_write(path, "w", encoding="utf-8") as handle:
             handle.write(text)
         return path
@@ -618,12 +618,15 @@ class ReviewSession:
 
         return self._commit(f"clear neuron {i}", change, [i])
 
-    def set_threshold(self, threshold: float) -> None:
-        """Confidence below which automatic names are hidden (not an undoable edit)."""
+    def set_threshold(self, threshold: float, save: bool = True) -> None:
+        """Confidence below which automatic names are hidden (not an undoable edit). ``save=False``
+        skips the autosave (a slider being dragged; call :meth:`autosave` on release)."""
         threshold = _check_threshold(threshold)
         if threshold != self.threshold:
             self.threshold = threshold
-            self._changed("threshold")
+            if save:
+                self.autosave()
+            self._emit("threshold")
 
     # ----- decisions carried over from elsewhere -----------------------------------------------
     def decisions(self) -> dict[int, "Decision"]:

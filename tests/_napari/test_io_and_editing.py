@@ -106,6 +106,13 @@ def test_errors_become_notifications(make_napari_viewer, sample_files, identifie
     assert "Auto-label first" in widget.last_error
     widget.identifier = identifier
     assert widget.auto_label() is not None and widget.last_error is None
+    # deleting the neuron-ID layer and running again loses no decision
+    r = int(np.flatnonzero(widget.layer.features["auto_id"] != "")[0])
+    widget.accept(r)
+    viewer.layers.remove(widget.layer)
+    assert widget.session is None and widget.layer is None
+    layer = widget.auto_label()
+    assert layer.features["status"][r] == "accepted" and widget.session.user_id[r] == layer.features["auto_id"][r]
     widget.layer.selected_data = set()
     widget.session.select(None)
     viewer.window._qt_viewer._key_map_handler.press_key("A")

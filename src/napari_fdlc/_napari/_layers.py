@@ -70,6 +70,8 @@ def stack_layers(stack, name: str | None = None, source_key: str | None = None) 
             "gamma": GAMMA,
             "contrast_limits": contrast_limits(channel),
             "visible": role != "GFP",
+            # the pan-neuronal W is in every nucleus: at half opacity the colour code stays readable
+            "opacity": 0.5 if role == "W" else 1.0,
             "axis_labels": ("z", "y", "x"),
             "metadata": {META_KEY: {"image": key, "role": role, "channel_name": label, "stack_name": base}},
         }

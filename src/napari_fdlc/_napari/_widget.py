@@ -210,8 +210,10 @@ class AutoLabelWidget(QWidget):
         self.threshold_slider.setRange(0, 100)
         self.threshold_slider.setValue(int(round(DEFAULT_THRESHOLD * 100)))
         self.threshold_slider.valueChanged.connect(self._on_slider)
+        self.threshold_slider.sliderReleased.connect(lambda: self.session.autosave() if self.session else None)
         self.threshold_label = QLabel(f"{DEFAULT_THRESHOLD:.2f}")
         self.coverage_label = QLabel("")
+        self.coverage_label.setWordWrap(True)
         self.hide_check = QCheckBox("hide points without a shown name")
         self.hide_check.toggled.connect(lambda _: self._refresh_layer())
         grid.addWidget(self.threshold_slider, 0, 0)
@@ -593,6 +595,8 @@ class AutoLabelWidget(QWidget):
         elif stack is None:
             raise FdlcError("no image chosen to detect nuclei in: pick the W (TagRFP-T) channel layer")
         previous = self.session if (self.session is not None and not own and self.session.image == image_key) else None
+        if previous is None and not own and image_key is not None:
+            previous = _saved_session(image_key)  # e.g. the neuron-ID layer was deleted: keep its decisions
         voxel = stack.voxel_size_zyx if stack is not None else (self.session.voxel_size_zyx if own else None)
         own_decisions = self.session.decisions() if own else None
         signals = self._signals
@@ -951,7 +955,7 @@ class AutoLabelWidget(QWidget):
             self.threshold_slider.setValue(int(round(p * 100)))
         self.threshold_label.setText(f"{p:.2f}")
         if self.session is not None:
-            self.session.set_threshold(p)
+            self.session.set_threshold(p, save=not self.threshold_slider.isSliderDown())
         self._refresh_all()
 
     def _on_slider(self, value: int) -> None:
@@ -1250,6 +1254,20 @@ class AutoLabelWidget(QWidget):
             yield
         finally:
             self._guard -= 1
+
+
+def _saved_session(image_key: str) -> ReviewSession | None:
+    from ..errors import warn
+    from ..review import find_session
+
+    path = find_session(image_key)
+    if path is None:
+        return None
+    try:
+        return ReviewSession.load(path)
+    except FdlcError as exc:
+        warn(f"earlier decisions not carried over: {exc}")
+        return None
 
 
 def _combo() -> QComboBox:

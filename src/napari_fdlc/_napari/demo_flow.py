@@ -78,6 +78,7 @@ def run_demo(
 def show_labelled_plane(viewer, layer) -> int:
     """Fit the view and go to the z plane showing the most named neurons; returns the plane."""
     viewer.reset_view()
+    viewer.camera.zoom *= 1.2
     data = np.asarray(layer.data)
     labels = np.asarray(layer.features["label"], dtype=object)
     planes = np.rint(data[:, 0]).astype(int)
