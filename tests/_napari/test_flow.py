@@ -171,7 +171,9 @@ def test_whole_flow(labelled_viewer, make_napari_viewer):
     i = widget.current
     world = layer.data[i] * np.asarray(layer.scale)
     assert viewer.dims.point[0] == pytest.approx(world[0], abs=layer.scale[0])
-    assert np.allclose(viewer.camera.center[-2:], world[-2:])
+    from napari_fdlc._napari._widget import camera
+
+    assert np.allclose(camera(viewer).center[-2:], world[-2:])
     assert layer.selected_data == {i}
     assert widget.previous_neuron() == e
     _press(viewer, "N")

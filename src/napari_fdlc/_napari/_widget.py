@@ -636,7 +636,7 @@ class AutoLabelWidget(QWidget):
                 self.session.set_labelling(labelling, "auto-label")
             else:
                 self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name)
-            self._status(f"{len(table)} neurons named — {self._coverage_text()}")
+            self._status(f"done: {len(table)} neurons")
 
         self._stack = stack if stack is not None else self._stack
         return self._start(work, done, wait, "auto-label")
@@ -667,7 +667,7 @@ class AutoLabelWidget(QWidget):
                 return
             session.settings.update({"template": template_text, "colour": use_colour})
             session.set_labelling(labelling, "re-label")
-            self._status(f"re-labelled with {len(fixed)} fixed name(s) — {self._coverage_text()}")
+            self._status(f"re-labelled ({len(fixed)} of your names fixed)")
 
         return self._start(work, done, wait, "re-label")
 
@@ -785,7 +785,7 @@ class AutoLabelWidget(QWidget):
         else:
             session = ReviewSession.load(path)
         self._link(session, layer)
-        self._status(f"session {Path(path).name}: {self._coverage_text()}")
+        self._status(f"restored {Path(path).name}")
 
     def _link(self, session: ReviewSession, layer=None) -> None:
         """Show ``session`` in ``layer`` (a new Points layer when None)."""
@@ -914,16 +914,23 @@ class AutoLabelWidget(QWidget):
         """Colours of neurons added by hand: measured in the image on the scale of the others
         (z-scores across all neurons, as the detector does), else the median."""
         measured = None
-        if self._stack is not None:
+        stack = self._stack
+        image = self.session.image if self.session is not None else None
+        if stack is None or stack.source != image:
+            try:  # e.g. a session restored from its file: the channels chosen in the widget
+                stack = self._make_stack(self._chosen_images())
+            except FdlcError:
+                stack = None
+        if stack is not None and stack.source == image:
             try:
                 from ..segment import measure_colours
 
-                raw = measure_colours(self._stack, xyz, zscore=False)
+                raw = measure_colours(stack, xyz, zscore=False)
                 measured = {}
                 for c, v in raw.items():
                     sd = v.std()
                     measured[c] = (v - v.mean()) / sd if sd > 0 else np.zeros_like(v)
-            except Exception:
+            except (FdlcError, ValueError, IndexError):  # colours are a bonus: fall back to the median
                 measured = None
         for c, col in colours.items():
             if measured is not None and c in measured:
@@ -1245,7 +1252,7 @@ class AutoLabelWidget(QWidget):
         for axis in range(ndim):
             if axis not in displayed:
                 self.viewer.dims.set_point(axis, full[axis])
-        self.viewer.camera.center = tuple(full[displayed])
+        camera(self.viewer).center = tuple(full[displayed])
 
     @contextmanager
     def _guarded(self):
@@ -1254,6 +1261,12 @@ class AutoLabelWidget(QWidget):
             yield
         finally:
             self._guard -= 1
+
+
+def camera(viewer):
+    """The viewer's camera (``viewer.scene.camera`` since napari 0.9, ``viewer.camera`` before)."""
+    scene = getattr(viewer, "scene", None)
+    return scene.camera if scene is not None and hasattr(scene, "camera") else viewer.camera
 
 
 def _saved_session(image_key: str) -> ReviewSession | None:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FdlcError
+from ._widget import camera
 
 WINDOW_SIZE = (1500, 950)
 
@@ -78,7 +79,7 @@ def run_demo(
 def show_labelled_plane(viewer, layer) -> int:
     """Fit the view and go to the z plane showing the most named neurons; returns the plane."""
     viewer.reset_view()
-    viewer.camera.zoom *= 1.2
+    camera(viewer).zoom *= 1.2
     data = np.asarray(layer.data)
     labels = np.asarray(layer.features["label"], dtype=object)
     planes = np.rint(data[:, 0]).astype(int)
@@ -90,13 +91,70 @@ def show_labelled_plane(viewer, layer) -> int:
     return best
 
 
-def main() -> None:  # python -m napari_fdlc._napari.demo_flow OUT [--headless]
+def docs_screenshot(path: str | os.PathLike, *, identifier=None, templates=None, threshold: float | None = None) -> Path:
+    """The screenshot of docs/gui.md: the sample labelled, a few decisions of each kind made
+    (so every ring colour shows), one neuron selected with its candidates. Run under Xvfb."""
+    import tempfile
+
+    import napari
+
+    path = Path(path)
+    with tempfile.TemporaryDirectory() as tmp:
+        old_env = os.environ.get("FDLC_SESSION_DIR")
+        os.environ["FDLC_SESSION_DIR"] = tmp
+        viewer = napari.Viewer(show=False, title="napari-fdlc")
+        try:
+            viewer.window._qt_window.resize(*WINDOW_SIZE)
+            viewer.open_sample("napari-fdlc", "neuropal")
+            _, w = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+            if identifier is not None:
+                w.identifier = identifier
+            if templates is not None:
+                w.set_templates(templates)
+            layer = w.auto_label()
+            if layer is None:
+                raise FdlcError(w.last_error or "auto-label failed")
+            if threshold is not None:
+                w.set_threshold(threshold)
+            plane = show_labelled_plane(viewer, layer)
+            on_plane = [int(i) for i in np.flatnonzero(np.rint(layer.data[:, 0]) == plane)]
+            named = [i for i in on_plane if layer.features["label"][i]]
+            f = layer.features
+            taken = set(f["auto_id"])
+            if len(named) >= 4:
+                w.accept(named[0])
+                w.accept(named[1])
+                spare = next((c for c in f["cand_2"] if c and c not in taken), None)
+                if spare:
+                    w.assign(named[2], spare)
+                w.mark_unsure(named[3])
+            if named:
+                w.select_neuron(named[-1])
+            viewer.dims.set_point(viewer.dims.ndim - 3, plane * float(layer.scale[0]))
+            viewer.reset_view()
+            camera(viewer).zoom *= 1.2
+            path.parent.mkdir(parents=True, exist_ok=True)
+            viewer.screenshot(str(path), canvas_only=False, flash=False)
+        finally:
+            viewer.close()
+            if old_env is None:
+                os.environ.pop("FDLC_SESSION_DIR", None)
+            else:
+                os.environ["FDLC_SESSION_DIR"] = old_env
+    return path
+
+
+def main() -> None:  # python -m napari_fdlc._napari.demo_flow OUT [--headless | --docs-screenshot PNG]
     import argparse
 
     parser = argparse.ArgumentParser(description="napari-fdlc demo on the bundled sample")
     parser.add_argument("out_dir", nargs="?", default="demo_out")
     parser.add_argument("--headless", action="store_true")
+    parser.add_argument("--docs-screenshot", metavar="PNG", help="write the screenshot of docs/gui.md and exit")
     args = parser.parse_args()
+    if args.docs_screenshot:
+        print(docs_screenshot(args.docs_screenshot))
+        return
     result = run_demo(args.out_dir, args.headless)
     if result:
         print("\n".join(str(p) for p in result))
