@@ -23,7 +23,7 @@ def test_manifest_is_valid():
     assert len(c.readers) == 2 and c.writers[0].layer_types == ["points"]
 
 
-def test_open_a_file_label_export_reopen(make_napari_viewer, sample_files, identifier, templates, tmp_path):
+def test_open_a_file_label_export_reopen(make_napari_viewer, sample_files, identifier, templates, tmp_path, monkeypatch):
     from napari_fdlc.table import write_neuropal_id, read_table
 
     stack_path = tmp_path / "worm 1.ome.tif"  # a user's file in a writable folder
@@ -76,6 +76,24 @@ def test_open_a_file_label_export_reopen(make_napari_viewer, sample_files, ident
     back = read_table(written)
     assert np.allclose(back.xyz, widget.session.table.xyz, atol=1e-4)
     assert list(pd.read_csv(written, keep_default_na=False)["status"]) == list(layer.features["status"])
+
+    # --- the export buttons ask before replacing a file ----------------------------------------------
+    from napari_fdlc._napari import _widget
+
+    asked = []
+    monkeypatch.setattr(_widget.QFileDialog, "getSaveFileName", lambda *a, **k: (str(out), "CSV (*.csv)"))
+    monkeypatch.setattr(_widget.QMessageBox, "question", lambda *a, **k: asked.append(a[2]) or _widget.QMessageBox.StandardButton.No)
+    stamp = out.stat().st_mtime_ns
+    widget.export_button.click()
+    assert asked and str(out) in asked[0] and out.stat().st_mtime_ns == stamp
+    monkeypatch.setattr(_widget.QMessageBox, "question", lambda *a, **k: _widget.QMessageBox.StandardButton.Yes)
+    widget.export_npid_button.click()
+    assert out.read_text().startswith("Version,")  # replaced, in NeuroPAL_ID layout
+    # a labelled table file as the template
+    monkeypatch.setattr(_widget.QFileDialog, "getOpenFileName", lambda *a, **k: (str(written), "CSV (*.csv)"))
+    widget.template_combo.setCurrentText(_widget.FROM_FILE)
+    widget.template_combo.activated.emit(widget.template_combo.currentIndex())
+    assert widget.template_combo.currentText() == "file: saved.csv"
 
     # --- reopen the file in a new viewer: the session comes back beside it --------------------------
     viewer.close()
@@ -136,3 +154,14 @@ def test_headless_demo(sample_files, identifier, templates, tmp_path, qtbot):
 
     image = imread(shot)
     assert image.shape[0] > 400 and image.shape[1] > 800
+
+
+def test_closing_the_widget_unbinds_its_keys(make_napari_viewer, sample_files, qtbot):
+    viewer = make_napari_viewer()
+    viewer.open_sample("napari-fdlc", "neuropal")
+    dock, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    handler = viewer.window._qt_viewer._key_map_handler
+    viewer.layers.selection.active = viewer.layers["NeuroPAL sample [W]"]
+    assert handler.press_key("N")  # bound on the viewer
+    viewer.window.remove_dock_widget(dock)
+    assert not handler.press_key("N")

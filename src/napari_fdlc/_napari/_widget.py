@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
-from qtpy.QtCore import QEventLoop, QObject, Qt, QTimer, Signal
+from qtpy.QtCore import QEvent, QEventLoop, QObject, Qt, QTimer, Signal
 from qtpy.QtGui import QColor
 from qtpy.QtWidgets import (
     QAbstractItemView,
@@ -134,6 +134,7 @@ class AutoLabelWidget(QWidget):
         self._stack = None  # the Stack of the last run (colours of points added by hand)
         self._guard = 0  # > 0 while the widget itself changes layers / controls
         self._known_names: list[str] | None = None
+        self._bound: list = []  # key-binding providers (the viewer, neuron-ID layers)
         self._signals = _Signals()
         self._signals.progress.connect(self._on_progress)
         self._build_ui()
@@ -325,7 +326,43 @@ class AutoLabelWidget(QWidget):
         layers.events.inserted.connect(self._on_layer_inserted)
         layers.events.removed.connect(self._on_layer_removed)
         layers.events.changed.connect(self._refresh_choices)
+        for layer in layers:
+            layer.events.name.connect(self._refresh_choices)
         self._bind_keys(self.viewer)
+
+    def event(self, e) -> bool:
+        # napari closes a dock by taking the widget out of it: then let go of the viewer
+        if e.type() == QEvent.Type.ParentChange:
+            if self.parent() is not None:
+                self._docked = True
+            elif getattr(self, "_docked", False):
+                self._release_viewer()
+        return super().event(e)
+
+    def _release_viewer(self) -> None:
+        """Unbind the keys and disconnect from the viewer (the widget was closed)."""
+        for provider in self._bound:
+            for key, _action, _text in KEYS:
+                try:
+                    provider.bind_key(key, None)
+                except (KeyError, ValueError, TypeError):
+                    pass
+        self._bound = []
+        layers = self.viewer.layers
+        pairs = [
+            (layers.events.inserted, self._on_layer_inserted),
+            (layers.events.removed, self._on_layer_removed),
+            (layers.events.changed, self._refresh_choices),
+        ] + [(layer.events.name, self._refresh_choices) for layer in layers]
+        for signal, slot in pairs:
+            try:
+                signal.disconnect(slot)
+            except (TypeError, RuntimeError, ValueError):
+                pass
+        if self.layer is not None:
+            self._disconnect_layer(self.layer)
+        if self.session is not None:
+            self.session.disconnect(self._on_session)
 
     def _bind_keys(self, provider) -> None:
         actions: dict[str, Callable[[], object]] = {
@@ -344,6 +381,7 @@ class AutoLabelWidget(QWidget):
         for key, action, _ in KEYS:
             fn = actions[action]
             provider.bind_key(key, lambda _obj=None, fn=fn: fn(), overwrite=True)
+        self._bound.append(provider)
 
     def _focus_name(self) -> None:
         self.name_edit.setFocus()
@@ -351,6 +389,7 @@ class AutoLabelWidget(QWidget):
 
     def _on_layer_inserted(self, event) -> None:
         layer = event.value
+        layer.events.name.connect(self._refresh_choices)
         self._refresh_choices()
         if self._guard:
             return
@@ -589,6 +628,7 @@ class AutoLabelWidget(QWidget):
                 raise FdlcError(f"no points layer '{source}'")
             points = self.viewer.layers[source]
             given_table = table_from_layer(points)
+            points_scale = tuple(float(v) for v in points.scale[-3:])
             decisions = decisions_from_frame(points.features) if len(points.features) == len(given_table) else {}
             if image_key is None:
                 image_key = image_key_of(points)
@@ -598,6 +638,8 @@ class AutoLabelWidget(QWidget):
         if previous is None and not own and image_key is not None:
             previous = _saved_session(image_key)  # e.g. the neuron-ID layer was deleted: keep its decisions
         voxel = stack.voxel_size_zyx if stack is not None else (self.session.voxel_size_zyx if own else None)
+        if voxel is None and source != SEGMENT and not own and not np.allclose(points_scale, 1.0):
+            voxel = points_scale  # points of a table we exported: keep them on their voxels
         own_decisions = self.session.decisions() if own else None
         signals = self._signals
 
