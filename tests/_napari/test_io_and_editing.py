@@ -165,3 +165,20 @@ def test_closing_the_widget_unbinds_its_keys(make_napari_viewer, sample_files, q
     assert handler.press_key("N")  # bound on the viewer
     viewer.window.remove_dock_widget(dock)
     assert not handler.press_key("N")
+
+
+def test_nwb_opens_with_its_neurons(sample_files, tmp_path):
+    from napari_fdlc._napari._io import get_stack_reader, get_table_reader
+    from napari_fdlc.io.nwb import write_nwb
+    from napari_fdlc.sample import load_sample
+
+    stack, truth = load_sample()
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, stack, truth)
+    assert get_table_reader(str(path)) is None and get_stack_reader(str(tmp_path / "x.png")) is None
+    layers = get_stack_reader(str(path))(str(path))
+    assert [t for _, _, t in layers] == ["image"] * 4 + ["points"]
+    data, kwargs, _ = layers[-1]
+    world_xyz = (data * np.asarray(kwargs["scale"]))[:, ::-1]
+    assert np.abs(world_xyz - truth.xyz).max() <= 0.5 * max(stack.voxel_size_zyx) + 1e-6  # voxel-mask rounding
+    assert list(kwargs["features"]["label"]) == list(truth.label_strings())
