@@ -61,6 +61,12 @@ def apply_affine(xyz: np.ndarray, affine: np.ndarray) -> np.ndarray:
     return np.hstack([xyz, np.ones((len(xyz), 1))]) @ affine
 
 
+def compose_affine(first: np.ndarray, then: np.ndarray) -> np.ndarray:
+    """The 4×3 affine of ``apply_affine(apply_affine(x, first), then)``."""
+    hom = np.hstack([first, np.array([[0.0], [0.0], [0.0], [1.0]])])
+    return hom @ then
+
+
 def orientation_cost(template: np.ndarray, test: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """For each of the 8 orientations, mean squared distance of known pairs (template i, test j)
     after the best translation; used to find the true orientation of a training pair."""

@@ -20,7 +20,7 @@ import numpy as np
 
 from . import colour as colour_model
 from .errors import FdlcError, ModelError, warn
-from .geometry import ORIENTATIONS, apply_affine, canonical_frame, fit_affine
+from .geometry import ORIENTATIONS, apply_affine, canonical_frame, compose_affine, fit_affine
 from .match import Labelling, make_labelling, name_probabilities
 from .table import NeuronTable
 
@@ -33,11 +33,12 @@ def shipped_weights() -> Path:
 
 @dataclass
 class InferenceSettings:
-    refine_steps: int = 2  # affine re-alignment passes after the orientation search
+    refine_steps: int = 0  # affine re-alignment passes after the orientation search (measured: no gain yet)
     colour_weight: float = 1.0  # λ: exponent of the colour likelihood ratio
     colour_sigma: float = 0.6  # width of the colour likelihood in normal-score units
     temperature: float = 1.0  # divides the log-probabilities (calibration, fitted on training labs)
     chirality_search: bool = True  # also try the z-mirrored recording convention
+    orientation_score: str = "willingness"  # or "assignment" (see Identifier._align)
     no_match_weight: float = 0.2  # see match.assign
 
     @classmethod
@@ -74,18 +75,77 @@ class Identifier:
     # ------------------------------------------------------------------------------------------
     def _forward(self, template_xyz: np.ndarray, test_batch: np.ndarray) -> np.ndarray:
         """log p for a batch of oriented copies of the test (K, N, 3) against one template."""
+        return np.stack(self._forward_many(template_xyz, list(test_batch)))
+
+    def _forward_many(self, template_xyz: np.ndarray, tests: list[np.ndarray]) -> list[np.ndarray]:
+        """log p (N_v, M + 1) for each placed test (N_v, 3) against one template, batched.
+
+        Tests of different sizes are padded to a common size with a mask; the template is given
+        to the model with batch 1, so it is embedded once per chunk (see CorrespondenceModel).
+        """
         torch = self.torch
-        k = len(test_batch)
-        tmpl = torch.as_tensor(template_xyz, dtype=torch.float32, device=self.device)
-        tests = torch.as_tensor(test_batch, dtype=torch.float32, device=self.device)
+        if not tests:
+            return []
+        tmpl = torch.as_tensor(template_xyz, dtype=torch.float32, device=self.device)[None]
+        sizes = np.array([len(t) for t in tests])
+        size = int(sizes.max())
+        batch = np.zeros((len(tests), size, 3), dtype=np.float32)
+        for i, t in enumerate(tests):
+            batch[i, : len(t)] = t
+        tests_t = torch.as_tensor(batch, device=self.device)
+        mask = None
+        if (sizes < size).any():
+            mask = torch.as_tensor(np.arange(size)[None, :] < sizes[:, None], device=self.device)
         # Chunk so that 2000-neuron worms fit in memory.
-        chunk = max(1, int(4e6 // max(1, tests.shape[1] * max(tmpl.shape[0], tests.shape[1]))))
+        chunk = max(1, int(4e6 // max(1, size * max(tmpl.shape[1], size))))
         out = []
         with torch.inference_mode():
-            for s in range(0, k, chunk):
-                t = tests[s : s + chunk]
-                out.append(self.model(tmpl.expand(len(t), -1, -1), t).float().cpu().numpy())
-        return np.concatenate(out)
+            for s in range(0, len(tests), chunk):
+                m = None if mask is None else mask[s : s + chunk]
+                lp = self.model(tmpl, tests_t[s : s + chunk], None, m).float().cpu().numpy()
+                out.extend(lp)
+        return [lp[:n] for lp, n in zip(out, sizes)]
+
+    def _align(self, template_xyz: np.ndarray, starts: list[np.ndarray], refine_steps: int | None = None) -> list[dict]:
+        """Orientation choice and affine refinement for many tests at once.
+
+        ``starts[v]`` (K_v, N_v, 3) holds K_v candidate placements of test v in the template's
+        frame (8 orientations for a full search, 1 when tracking from the previous volume). All
+        candidates of all tests go through the model in one batch; the candidate the model is
+        most willing to match wins; then ``refine_steps`` affine passes, batched over tests.
+        Returns per test: ``log_p`` (N_v, M + 1), ``best`` (candidate index), ``willingness``
+        (per candidate), ``affine`` (4×3: winning candidate -> final placement), ``moved``.
+        """
+        steps = self.settings.refine_steps if refine_steps is None else refine_steps
+        a = np.asarray(template_xyz, dtype=np.float64)
+        m = a.shape[0]
+        flat = [c for cands in starts for c in cands]
+        log_p = self._forward_many(a, flat)
+        results, k0 = [], 0
+        for cands in starts:
+            lps = np.stack(log_p[k0 : k0 + len(cands)])
+            k0 += len(cands)
+            # Trained with wrongly oriented pairs as negatives, the model puts its mass on "no
+            # match" when the worms are not aligned: the orientation it is most willing to match wins.
+            willingness = np.log1p(-np.exp(np.minimum(lps[:, :, m], -1e-6))).mean(axis=1)
+            if self.settings.orientation_score == "assignment" and len(lps) > 1:
+                # Mean log-probability of the one-to-one assignment: unlike willingness alone it
+                # rewards orientations where neurons find *distinct* partners.
+                willingness = np.array([assignment_score(lp) for lp in lps])
+            best = int(np.argmax(willingness))
+            results.append({"best": best, "willingness": willingness, "log_p": lps[best],
+                            "moved": cands[best], "affine": np.vstack([np.eye(3), np.zeros((1, 3))])})
+        for _ in range(steps):
+            for r in results:
+                p = np.exp(r["log_p"][:, :m])
+                weight = p.max(axis=1)
+                targets = (p @ a) / np.maximum(p.sum(axis=1, keepdims=True), 1e-9)
+                affine = fit_affine(r["moved"], targets, weight**2)
+                r["moved"] = apply_affine(r["moved"], affine)
+                r["affine"] = compose_affine(r["affine"], affine)
+            for r, lp in zip(results, self._forward_many(a, [r["moved"] for r in results])):
+                r["log_p"] = lp
+        return results
 
     def match_pair(self, template: NeuronTable, test: NeuronTable, use_colour: bool = True) -> tuple[np.ndarray, dict]:
         """Probabilities (N_test, M_template + 1) that each test neuron is each template neuron
@@ -94,28 +154,35 @@ class Identifier:
         b, _, _ = canonical_frame(test.xyz)
         orientations = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:4]
         candidates = np.einsum("kij,nj->kni", orientations, b)
-        log_p = self._forward(a, candidates)
-        # Trained with wrongly oriented pairs as negatives, the model puts its mass on "no match"
-        # when the worms are not aligned: the orientation it is most willing to match wins.
-        m = a.shape[0]
-        willingness = np.log1p(-np.exp(np.minimum(log_p[:, :, m], -1e-6))).mean(axis=1)
-        best = int(np.argmax(willingness))
-        moved, lp = candidates[best], log_p[best]
-        for _ in range(self.settings.refine_steps):
-            p = np.exp(lp[:, :m])
-            weight = p.max(axis=1)
-            targets = (p @ a) / np.maximum(p.sum(axis=1, keepdims=True), 1e-9)
-            affine = fit_affine(moved, targets, weight**2)
-            moved = apply_affine(moved, affine)
-            lp = self._forward(a, moved[None])[0]
-        # Calibration (fitted on training labs) applies to the final answer only, not to the
-        # orientation search or the refinement weights.
-        lp = lp / self.settings.temperature
-        lp = lp - np.logaddexp.reduce(lp, axis=1, keepdims=True)
+        found = self._align(a, [candidates])[0]
+        best, willingness, lp = found["best"], found["willingness"], found["log_p"]
+        lp = self._calibrate(lp)
         if use_colour:
             lp = self._fuse_colour(lp, template, test)
         info = {"orientation": best, "mirrored": best >= 4, "willingness": willingness.tolist()}
         return np.exp(lp), info
+
+    def match_many(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True) -> list[tuple[np.ndarray, dict]]:
+        """:meth:`match_pair` for many tests against one template, batched through the model
+        (same answers; many volumes per second instead of one forward pass per volume)."""
+        a, _, _ = canonical_frame(template.xyz)
+        orientations = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:4]
+        starts = [np.einsum("kij,nj->kni", orientations, canonical_frame(t.xyz)[0]) for t in tests]
+        out = []
+        for test, found in zip(tests, self._align(a, starts)):
+            lp = self._calibrate(found["log_p"])
+            lp = self._fuse_colour(lp, template, test) if use_colour else lp
+            best = found["best"]
+            out.append((np.exp(lp), {"orientation": best, "mirrored": best >= 4, "willingness": found["willingness"].tolist()}))
+        return out
+
+    def _calibrate(self, log_p: np.ndarray) -> np.ndarray:
+        """Temperature (fitted on training labs) on the final answer only — not on the
+        orientation search or the refinement weights."""
+        if self.settings.temperature == 1.0:
+            return log_p
+        lp = log_p / self.settings.temperature
+        return lp - np.logaddexp.reduce(lp, axis=1, keepdims=True)
 
     def _fuse_colour(self, log_p: np.ndarray, template: NeuronTable, test: NeuronTable) -> np.ndarray:
         channels = colour_model.shared_channels(template, test)
@@ -157,6 +224,17 @@ class Identifier:
         names, probs = name_probabilities(per_template)
         info = {"templates": infos, "colour": use_colour}
         return make_labelling(names, probs, fixed, info, self.settings.no_match_weight)
+
+
+def assignment_score(log_p: np.ndarray) -> float:
+    """Mean log-probability of the best one-to-one assignment onto template neurons, "no match"
+    excluded: a wrong orientation cannot win by declaring everything unmatched."""
+    from scipy.optimize import linear_sum_assignment
+
+    cost = -log_p[:, :-1]
+    cost = np.where(np.isfinite(cost), cost, 1e9)
+    rows, cols = linear_sum_assignment(cost)
+    return float(-cost[rows, cols].mean())
 
 
 _DEFAULT: dict = {}

@@ -62,16 +62,20 @@ class Attention(nn.Module):
         self.kv = nn.Linear(dim, 2 * dim)
         self.out = nn.Linear(dim, dim)
 
-    def forward(self, x, context, key_mask, bias=None):
+    def forward(self, x, context, key_mask=None, bias=None):
+        """``key_mask`` (B, M) True = real neuron, or None when no key is padding; ``bias``
+        (B or 1, heads, N, M) is added to the scores. A batch of 1 on either side is broadcast."""
         b, n, d = x.shape
         h = self.heads
         q = self.q(x).view(b, n, h, d // h).transpose(1, 2)
-        k, v = self.kv(context).view(b, -1, 2, h, d // h).permute(2, 0, 3, 1, 4)
-        mask = key_mask[:, None, None, :]  # B 1 1 M, True = real neuron
-        attn_bias = torch.zeros((), dtype=x.dtype) if bias is None else bias
-        attn_bias = attn_bias.masked_fill(~mask, float("-inf"))
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_bias)
-        return self.out(out.transpose(1, 2).reshape(b, n, d))
+        k, v = self.kv(context).view(context.shape[0], -1, 2, h, d // h).permute(2, 0, 3, 1, 4)
+        batch = max(b, k.shape[0])
+        q, k, v = (t.expand(batch, -1, -1, -1) for t in (q, k, v))
+        if key_mask is not None:
+            fill = torch.zeros((), dtype=x.dtype, device=x.device) if bias is None else bias
+            bias = fill.masked_fill(~key_mask[:, None, None, :], float("-inf"))
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias)
+        return self.out(out.transpose(1, 2).reshape(batch, n, d))
 
 
 class Block(nn.Module):
@@ -86,16 +90,17 @@ class Block(nn.Module):
         # One learned locality per head: bias = -softplus(w_h) * |p_i - p_j|^2.
         self.locality = nn.Parameter(torch.linspace(-1.0, 4.0, heads))
 
-    def forward(self, desc, sq_dist, mask):
-        # Template and test share the weights; run them as one batch of 2B sets.
-        x = self.norms[0](desc)
-        bias = -F.softplus(self.locality)[None, :, None, None] * sq_dist[:, None]
-        desc = desc + self.self_attn(x, x, mask, bias)
-        b = desc.shape[0] // 2
-        swapped = torch.cat([desc[b:], desc[:b]])
-        swapped_mask = torch.cat([mask[b:], mask[:b]])
-        desc = desc + self.cross_attn(self.norms[1](desc), self.norms[1](swapped), swapped_mask)
-        return desc + self.ffn(self.norms[2](desc))
+    def forward(self, tmpl, test, tmpl_sq, test_sq, tmpl_mask=None, test_mask=None):
+        """One layer on the template (B or 1, M, d) and the test (B, N, d) descriptors; the
+        masks are None when a side has no padding (then no mask is built at all)."""
+        locality = -F.softplus(self.locality)[None, :, None, None]
+        x, y = self.norms[0](tmpl), self.norms[0](test)
+        tmpl = tmpl + self.self_attn(x, x, tmpl_mask, locality * tmpl_sq[:, None])
+        test = test + self.self_attn(y, y, test_mask, locality * test_sq[:, None])
+        x, y = self.norms[1](tmpl), self.norms[1](test)
+        tmpl, test = tmpl + self.cross_attn(x, y, test_mask), test + self.cross_attn(y, x, tmpl_mask)
+        tmpl = tmpl + self.ffn(self.norms[2](tmpl))
+        return tmpl, test + self.ffn(self.norms[2](test))
 
 
 class CorrespondenceModel(nn.Module):
@@ -124,39 +129,38 @@ class CorrespondenceModel(nn.Module):
 
         Returns log-probabilities (B, N, M + 1); column M is "no match". Padded template columns
         get -inf; padded test rows are garbage and must be ignored by the caller.
+
+        A template of batch 1 is shared by all B tests: it is embedded and self-attended once
+        (the result is the same as expanding it). Template and test are never padded to each
+        other's size, and a mask with no padding is dropped, so unpadded inputs run without any
+        attention mask.
         """
-        b, m, _ = template_xyz.shape
-        n = test_xyz.shape[1]
-        if template_mask is None:
-            template_mask = torch.ones(b, m, dtype=torch.bool, device=template_xyz.device)
-        if test_mask is None:
-            test_mask = torch.ones(b, n, dtype=torch.bool, device=test_xyz.device)
+        b = test_xyz.shape[0]
+        template_mask = _real_mask(template_mask)
+        test_mask = _real_mask(test_mask)
         scale = self.config["scale_um"]
-        # One padded batch of 2B sets: templates first, then tests.
-        size = max(m, n)
-        xyz = torch.cat([_pad(template_xyz, size), _pad(test_xyz, size)]) / scale
-        mask = torch.cat([_pad(template_mask, size), _pad(test_mask, size)])
-        desc = self.embed(xyz)
-        desc = desc + torch.cat([self.role[0].expand(b, 1, -1), self.role[1].expand(b, 1, -1)])
-        sq_dist = torch.cdist(xyz, xyz).square()  # within each worm, shared by all layers
+        p0, q0 = template_xyz / scale, test_xyz / scale
+        tmpl = self.embed(p0) + self.role[0]
+        test = self.embed(q0) + self.role[1]
+        tmpl_sq = torch.cdist(p0, p0).square()  # within each worm, shared by all layers
+        test_sq = torch.cdist(q0, q0).square()
         for block in self.blocks:
-            desc = block(desc, sq_dist, mask)
-        moved = xyz + self.displace(desc)
-        feats = self.project(desc)
-        u, v = feats[:b, :m], feats[b:, :n]
-        p, q = moved[:b, :m], moved[b:, :n]
+            tmpl, test = block(tmpl, test, tmpl_sq, test_sq, template_mask, test_mask)
+        p = (p0 + self.displace(tmpl)).expand(b, -1, -1)
+        q = q0 + self.displace(test)
+        u = self.project(tmpl).expand(b, -1, -1)
+        v = self.project(test)
         logits = torch.einsum("bnd,bmd->bnm", v, u) / math.sqrt(u.shape[-1])
         logits = logits - self.log_alpha.exp() * torch.cdist(q, p).square()
-        logits = logits.masked_fill(~template_mask[:, None, :], float("-inf"))
-        no_match = self.no_match(desc[b:, :n])
+        if template_mask is not None:
+            logits = logits.masked_fill(~template_mask[:, None, :], float("-inf"))
+        no_match = self.no_match(test)
         return torch.cat([logits, no_match], dim=-1).log_softmax(dim=-1)
 
 
-def _pad(x: torch.Tensor, size: int) -> torch.Tensor:
-    if x.shape[1] == size:
-        return x
-    pad = [0, 0] * (x.dim() - 2) + [0, size - x.shape[1]]
-    return F.pad(x, pad)
+def _real_mask(mask):
+    """None when every entry is real (no padding): attention then needs no mask."""
+    return None if mask is None or bool(mask.all()) else mask
 
 
 def matching_loss(log_probs, target, negative=None, entropy_weight=0.0):
