@@ -179,18 +179,19 @@ class Decision:
     auto_conf: float | None = None
 
 
-def carry_decisions(old: "ReviewSession", xyz_um: np.ndarray, max_distance_um: float = 1.5) -> dict[int, Decision]:
-    """Map the user decisions of ``old`` onto new neuron positions (e.g. after segmenting the
-    image again): each decided neuron goes to the nearest new neuron within ``max_distance_um``,
-    one to one, closest pairs first."""
+def carry_decisions(old, xyz_um: np.ndarray, max_distance_um: float = 1.5) -> dict[int, Decision]:
+    """Map the user decisions of ``old`` (a :class:`ReviewSession`, or a snapshot
+    ``(old_xyz_um, old.decisions())`` taken on another thread) onto new neuron positions (e.g.
+    after segmenting the image again): each decided neuron goes to the nearest new neuron within
+    ``max_distance_um``, one to one, closest pairs first."""
     from scipy.spatial import cKDTree
 
-    decided = old.decisions()
+    old_xyz, decided = (old.table.xyz, old.decisions()) if isinstance(old, ReviewSession) else old
     xyz_um = np.asarray(xyz_um, dtype=float).reshape(-1, 3)
     if not decided or len(xyz_um) == 0:
         return {}
     rows = np.array(sorted(decided))
-    dist, idx = cKDTree(xyz_um).query(old.table.xyz[rows], k=min(4, len(xyz_um)), distance_upper_bound=max_distance_um)
+    dist, idx = cKDTree(xyz_um).query(np.asarray(old_xyz)[rows], k=min(4, len(xyz_um)), distance_upper_bound=max_distance_um)
     dist, idx = dist.reshape(len(rows), -1), idx.reshape(len(rows), -1)
     pairs = sorted(
         (float(d), int(r), int(j)) for r, ds, js in zip(rows, dist, idx) for d, j in zip(ds, js) if np.isfinite(d)

@@ -641,6 +641,8 @@ class AutoLabelWidget(QWidget):
         if voxel is None and source != SEGMENT and not own and not np.allclose(points_scale, 1.0):
             voxel = points_scale  # points of a table we exported: keep them on their voxels
         own_decisions = self.session.decisions() if own else None
+        # snapshots: the worker thread never reads a session the user may be editing
+        previous_snapshot = (previous.table.xyz.copy(), previous.decisions()) if previous is not None else None
         signals = self._signals
 
         def work():
@@ -660,8 +662,8 @@ class AutoLabelWidget(QWidget):
             if len(table) == 0:
                 raise FdlcError("no nuclei found: check the W channel and the nucleus diameter")
             carried = dict(decisions)
-            if previous is not None and previous.decisions():
-                carried.update(carry_decisions(previous, table.xyz))
+            if previous_snapshot is not None and previous_snapshot[1]:
+                carried.update(carry_decisions(previous_snapshot, table.xyz))
             if own_decisions is not None:
                 carried = own_decisions
             fixed = {i: d.name for i, d in carried.items()}
@@ -677,6 +679,9 @@ class AutoLabelWidget(QWidget):
                 self.session.settings.update(settings)
                 self.session.set_labelling(labelling, "auto-label")
             else:
+                if self.session is not None and self.session.image == image_key:
+                    # decisions made while the job ran are kept too
+                    carried = {**carried, **carry_decisions(self.session, table.xyz)}
                 self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name)
             self._status(f"done: {len(table)} neurons")
 
