@@ -181,3 +181,39 @@ def test_nwb_opens_with_its_neurons(sample_files, tmp_path):
     world_xyz = (data * np.asarray(kwargs["scale"]))[:, ::-1]
     assert np.abs(world_xyz - truth.xyz).max() <= 0.5 * max(stack.voxel_size_zyx) + 1e-6  # voxel-mask rounding
     assert list(kwargs["features"]["label"]) == list(truth.label_strings())
+
+
+def test_gui_stays_responsive_while_labelling(labelled_viewer, identifier):
+    import time
+
+    from qtpy.QtCore import QTimer
+
+    from napari_fdlc.errors import FdlcError
+
+    viewer, widget = labelled_viewer
+
+    class SlowIdentifier:  # the real model, made slow
+        def label(self, *args, **kwargs):
+            time.sleep(0.8)
+            return identifier.label(*args, **kwargs)
+
+    widget.identifier = SlowIdentifier()
+    ticks = []
+    timer = QTimer()
+    timer.timeout.connect(lambda: ticks.append(time.perf_counter()))
+    timer.start(20)
+    start = time.perf_counter()
+    worker = widget.auto_label(wait=False)  # the button's path
+    assert time.perf_counter() - start < 0.5 and widget.busy and worker is not None
+    assert not widget.run_button.isEnabled()
+    try:
+        widget.auto_label()
+        raise AssertionError("a second run must be refused while one is running")
+    except FdlcError as exc:
+        assert "still running" in str(exc)
+    assert widget.wait(timeout=30)
+    timer.stop()
+    assert widget.layer is not None and widget.run_button.isEnabled()
+    gaps = np.diff([start] + ticks)
+    assert len(ticks) > 20 and gaps.max() < 1.0  # the event loop kept running
+    assert widget.progress_bar.value() == 100
