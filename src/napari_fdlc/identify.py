@@ -77,7 +77,13 @@ class Identifier:
         """log p for a batch of oriented copies of the test (K, N, 3) against one template."""
         return np.stack(self._forward_many(template_xyz, list(test_batch)))
 
-    def _forward_many(self, template_xyz: np.ndarray, tests: list[np.ndarray]) -> list[np.ndarray]:
+    def _forward_many(
+        self,
+        template_xyz: np.ndarray,
+        tests: list[np.ndarray],
+        template_colour: np.ndarray | None = None,
+        test_colours: list[np.ndarray] | None = None,
+    ) -> list[np.ndarray]:
         """log p (N_v, M + 1) for each placed test (N_v, 3) against one template, batched.
 
         Tests of different sizes are padded to a common size with a mask; the template is given
@@ -96,17 +102,32 @@ class Identifier:
         mask = None
         if (sizes < size).any():
             mask = torch.as_tensor(np.arange(size)[None, :] < sizes[:, None], device=self.device)
+        tmpl_c = tests_c = None
+        if template_colour is not None and test_colours is not None:
+            tmpl_c = torch.as_tensor(template_colour, dtype=torch.float32, device=self.device)[None]
+            cbatch = np.zeros((len(tests), size, template_colour.shape[1]), dtype=np.float32)
+            for i, c in enumerate(test_colours):
+                cbatch[i, : len(c)] = c
+            tests_c = torch.as_tensor(cbatch, device=self.device)
         # Chunk so that 2000-neuron worms fit in memory.
         chunk = max(1, int(4e6 // max(1, size * max(tmpl.shape[1], size))))
         out = []
         with torch.inference_mode():
             for s in range(0, len(tests), chunk):
                 m = None if mask is None else mask[s : s + chunk]
-                lp = self.model(tmpl, tests_t[s : s + chunk], None, m).float().cpu().numpy()
+                tc = None if tests_c is None else tests_c[s : s + chunk]
+                lp = self.model(tmpl, tests_t[s : s + chunk], None, m, tmpl_c, tc).float().cpu().numpy()
                 out.extend(lp)
         return [lp[:n] for lp, n in zip(out, sizes)]
 
-    def _align(self, template_xyz: np.ndarray, starts: list[np.ndarray], refine_steps: int | None = None) -> list[dict]:
+    def _align(
+        self,
+        template_xyz: np.ndarray,
+        starts: list[np.ndarray],
+        refine_steps: int | None = None,
+        template_colour: np.ndarray | None = None,
+        test_colours: list[np.ndarray] | None = None,
+    ) -> list[dict]:
         """Orientation choice and affine refinement for many tests at once.
 
         ``starts[v]`` (K_v, N_v, 3) holds K_v candidate placements of test v in the template's
@@ -120,7 +141,10 @@ class Identifier:
         a = np.asarray(template_xyz, dtype=np.float64)
         m = a.shape[0]
         flat = [c for cands in starts for c in cands]
-        log_p = self._forward_many(a, flat)
+        flat_colours = None
+        if test_colours is not None:
+            flat_colours = [col for cands, col in zip(starts, test_colours) for _ in cands]
+        log_p = self._forward_many(a, flat, template_colour, flat_colours)
         results, k0 = [], 0
         for cands in starts:
             lps = np.stack(log_p[k0 : k0 + len(cands)])
@@ -143,7 +167,8 @@ class Identifier:
                 affine = fit_affine(r["moved"], targets, weight**2)
                 r["moved"] = apply_affine(r["moved"], affine)
                 r["affine"] = compose_affine(r["affine"], affine)
-            for r, lp in zip(results, self._forward_many(a, [r["moved"] for r in results])):
+            moved = [r["moved"] for r in results]
+            for r, lp in zip(results, self._forward_many(a, moved, template_colour, test_colours)):
                 r["log_p"] = lp
         return results
 
@@ -154,7 +179,8 @@ class Identifier:
         b, _, _ = canonical_frame(test.xyz)
         orientations = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:4]
         candidates = np.einsum("kij,nj->kni", orientations, b)
-        found = self._align(a, [candidates])[0]
+        tc, sc = self._model_colours(template, [test], use_colour)
+        found = self._align(a, [candidates], template_colour=tc, test_colours=sc)[0]
         best, willingness, lp = found["best"], found["willingness"], found["log_p"]
         lp = self._calibrate(lp)
         if use_colour:
@@ -169,12 +195,24 @@ class Identifier:
         orientations = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:4]
         starts = [np.einsum("kij,nj->kni", orientations, canonical_frame(t.xyz)[0]) for t in tests]
         out = []
-        for test, found in zip(tests, self._align(a, starts)):
+        tc, sc = self._model_colours(template, tests, use_colour)
+        for test, found in zip(tests, self._align(a, starts, template_colour=tc, test_colours=sc)):
             lp = self._calibrate(found["log_p"])
             lp = self._fuse_colour(lp, template, test) if use_colour else lp
             best = found["best"]
             out.append((np.exp(lp), {"orientation": best, "mirrored": best >= 4, "willingness": found["willingness"].tolist()}))
         return out
+
+    def _model_colours(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool):
+        """Colour inputs for a model trained with colour (normal scores of R, G, B), or Nones
+        when the model has no colour branch, colour is off, or a table lacks a channel."""
+        if not (use_colour and self.model.config.get("colour_channels")):
+            return None, None
+        tables = [template, *tests]
+        if not all(all(c in t.colours for c in colour_model.IDENTITY_CHANNELS) for t in tables):
+            return None, None
+        scores = [colour_model.normal_scores(t, colour_model.IDENTITY_CHANNELS) for t in tables]
+        return scores[0], scores[1:]
 
     def _calibrate(self, log_p: np.ndarray) -> np.ndarray:
         """Temperature (fitted on training labs) on the final answer only — not on the

@@ -34,6 +34,7 @@ DEFAULT_CONFIG = {
     "fourier_bands": 6,
     "scale_um": 20.0,  # coordinates are divided by this before the network sees them
     "prior_sigma_um": 4.0,  # initial width of the geometric prior
+    "colour_channels": 0,  # >0: per-neuron NeuroPAL colour (normal scores) is a model input too
 }
 
 
@@ -112,6 +113,14 @@ class CorrespondenceModel(nn.Module):
         dim, heads = self.config["dim"], self.config["heads"]
         self.embed = FourierEmbedding(dim, self.config["fourier_bands"])
         self.role = nn.Parameter(torch.zeros(2, dim))  # marks template (0) and test (1)
+        # Colour enters beside position, with a "colour present" flag so that the same weights
+        # serve --no-color. Zero start: an untrained colour branch changes nothing.
+        channels = self.config["colour_channels"]
+        self.colour_embed = None
+        if channels:
+            self.colour_embed = nn.Sequential(nn.Linear(channels + 1, dim), nn.GELU(), nn.Linear(dim, dim))
+            nn.init.zeros_(self.colour_embed[2].weight)
+            nn.init.zeros_(self.colour_embed[2].bias)
         self.blocks = nn.ModuleList(Block(dim, heads) for _ in range(self.config["layers"]))
         self.project = nn.Linear(dim, dim)
         # Zero start: the first scores are the geometric prior alone (the non-learned floor),
@@ -124,7 +133,21 @@ class CorrespondenceModel(nn.Module):
         sigma = self.config["prior_sigma_um"] / self.config["scale_um"]
         self.log_alpha = nn.Parameter(torch.tensor(math.log(1.0 / (2 * sigma**2))))
 
-    def forward(self, template_xyz, test_xyz, template_mask=None, test_mask=None):
+    def _colour(self, colour, xyz):
+        if self.colour_embed is None:
+            return 0.0
+        b, n, _ = xyz.shape
+        c = self.config["colour_channels"]
+        if colour is None:  # no colour: zeros with the flag off
+            feats = torch.zeros(b, n, c + 1, dtype=xyz.dtype, device=xyz.device)
+        elif colour.shape[-1] == c + 1:  # the caller set the flag per neuron (training batches)
+            feats = colour.to(xyz.dtype)
+        else:
+            flag = torch.ones(*colour.shape[:2], 1, dtype=xyz.dtype, device=xyz.device)
+            feats = torch.cat([colour.to(xyz.dtype), flag], dim=-1)
+        return self.colour_embed(feats)
+
+    def forward(self, template_xyz, test_xyz, template_mask=None, test_mask=None, template_colour=None, test_colour=None):
         """template_xyz (B, M, 3) and test_xyz (B, N, 3) in µm, canonical frame.
 
         Returns log-probabilities (B, N, M + 1); column M is "no match". Padded template columns
@@ -140,8 +163,8 @@ class CorrespondenceModel(nn.Module):
         test_mask = _real_mask(test_mask)
         scale = self.config["scale_um"]
         p0, q0 = template_xyz / scale, test_xyz / scale
-        tmpl = self.embed(p0) + self.role[0]
-        test = self.embed(q0) + self.role[1]
+        tmpl = self.embed(p0) + self.role[0] + self._colour(template_colour, p0)
+        test = self.embed(q0) + self.role[1] + self._colour(test_colour, q0)
         tmpl_sq = torch.cdist(p0, p0).square()  # within each worm, shared by all layers
         test_sq = torch.cdist(q0, q0).square()
         for block in self.blocks:

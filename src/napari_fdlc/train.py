@@ -27,6 +27,7 @@ import numpy as np
 from .corpus import LABS, Worm, load_corpus
 from .geometry import ORIENTATIONS, apply_affine, canonical_frame, fit_affine, orientation_cost
 from .simulate import SimulationParams, simulate_worm
+from .colour import IDENTITY_CHANNELS, normal_scores
 from .table import NeuronTable
 
 
@@ -43,6 +44,7 @@ class TrainConfig:
     synthetic_fraction: float = 0.25
     aligned_fraction: float = 0.35
     negative_fraction: float = 0.15
+    colour_dropout: float = 0.3  # pairs shown without colour, so --no-color uses the same weights
     max_neurons: int = 112  # crop bigger worms to a window along the body axis (CPU cost ~ N^2)
     seed: int = 0
     eval_every: int = 250
@@ -52,6 +54,8 @@ class TrainConfig:
     device: str | None = None
     model: dict = field(default_factory=dict)
     out: str = "runs/model"
+    init_from: str | None = None  # start from these weights (keys that fit; new branches start at zero)
+    resume: bool = False  # continue from the checkpoint at ``out`` (weights and step count)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -128,7 +132,13 @@ def make_example(template: NeuronTable, test: NeuronTable, target: np.ndarray, r
             c, s = math.cos(angle), math.sin(angle)
             jitter = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) * (1 + rng.normal(0, 0.03, 3))
             b = b @ jitter.T + rng.normal(0, 3.0, 3)
-    return a.astype(np.float32), b.astype(np.float32), target, negative
+    return a.astype(np.float32), b.astype(np.float32), target, negative, _colour_features(template), _colour_features(test)
+
+
+def _colour_features(table: NeuronTable) -> np.ndarray | None:
+    if not all(c in table.colours for c in IDENTITY_CHANNELS):
+        return None
+    return normal_scores(table, IDENTITY_CHANNELS).astype(np.float32)
 
 
 def sample_example(worms: list[Worm], rng, cfg: TrainConfig):
@@ -149,7 +159,9 @@ def sample_example(worms: list[Worm], rng, cfg: TrainConfig):
             return example
 
 
-def collate(examples, torch):
+def collate(examples, torch, colour_dropout: float = 0.0, rng=None):
+    """Pad a list of examples into tensors; colour features carry a per-neuron "present" flag
+    (dropped for a whole pair with probability ``colour_dropout``)."""
     b = len(examples)
     m = max(len(e[0]) for e in examples)
     n = max(len(e[1]) for e in examples)
@@ -157,19 +169,27 @@ def collate(examples, torch):
     t = torch.zeros(b, n, 3)
     am = torch.zeros(b, m, dtype=torch.bool)
     tm = torch.zeros(b, n, dtype=torch.bool)
+    ac = torch.zeros(b, m, len(IDENTITY_CHANNELS) + 1)
+    tc = torch.zeros(b, n, len(IDENTITY_CHANNELS) + 1)
     target = torch.full((b, n), -1, dtype=torch.long)
     negative = torch.zeros(b, dtype=torch.bool)
-    for k, (ea, eb, et, neg) in enumerate(examples):
+    for k, (ea, eb, et, neg, ca, cb) in enumerate(examples):
         a[k, : len(ea)] = torch.from_numpy(ea)
         t[k, : len(eb)] = torch.from_numpy(eb)
         am[k, : len(ea)] = True
         tm[k, : len(eb)] = True
+        drop = rng is not None and rng.random() < colour_dropout
+        if ca is not None and cb is not None and not drop:
+            ac[k, : len(ea), :-1] = torch.from_numpy(ca)
+            ac[k, : len(ea), -1] = 1.0
+            tc[k, : len(eb), :-1] = torch.from_numpy(cb)
+            tc[k, : len(eb), -1] = 1.0
         # "no match" is column M of this pair's own template; in the padded batch it is column m.
         tt = torch.from_numpy(et)
         tt = torch.where(tt == len(ea), torch.tensor(m), tt)
         target[k, : len(eb)] = tt
         negative[k] = neg
-    return a, t, am, tm, target, negative
+    return a, t, am, tm, target, negative, ac, tc
 
 
 def split_worms(worms: list[Worm], cfg: TrainConfig, rng) -> tuple[list[Worm], dict[str, list[Worm]]]:
@@ -213,6 +233,26 @@ def validation_pairs(val: dict[str, list[Worm]], per_lab: int, rng) -> dict[str,
     return out
 
 
+def _load_start(model, path: str, resume: bool, log) -> int:
+    """Copy the weights at ``path`` that fit ``model``; returns the step to continue from."""
+    from safetensors.torch import load_file
+
+    from .errors import ModelError
+
+    weights = Path(path).with_suffix(".safetensors")
+    if not weights.exists():
+        raise ModelError(f"{weights}: no checkpoint to start from")
+    state = load_file(str(weights))
+    own = model.state_dict()
+    fitting = {k: v for k, v in state.items() if k in own and own[k].shape == v.shape}
+    model.load_state_dict(fitting, strict=False)
+    log(f"started from {weights}: {len(fitting)}/{len(own)} tensors")
+    if not resume:
+        return 1
+    meta = json.loads(Path(path).with_suffix(".json").read_text())
+    return int(meta.get("best_step", 0)) + 1
+
+
 def train(cfg: TrainConfig, log=print) -> dict:
     import torch
 
@@ -231,6 +271,10 @@ def train(cfg: TrainConfig, log=print) -> dict:
         + ", ".join(f"{lab} ({len(p)} pairs)" for lab, p in val_pairs.items()))
 
     model = CorrespondenceModel(cfg.model).to(device)
+    first_step = 1
+    start_from = cfg.out if cfg.resume else cfg.init_from
+    if start_from:
+        first_step = _load_start(model, start_from, cfg.resume, log)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     warmup = max(1, min(100, cfg.steps // 10))
     sched = torch.optim.lr_scheduler.LambdaLR(
@@ -240,12 +284,16 @@ def train(cfg: TrainConfig, log=print) -> dict:
     out.parent.mkdir(parents=True, exist_ok=True)
     start = time.time()
     best, history, running = -1.0, [], []
-    settings = InferenceSettings(refine_steps=2)
-    for step in range(1, cfg.steps + 1):
+    settings = InferenceSettings()
+    for _ in range(1, first_step):
+        sched.step()  # the learning-rate schedule continues where it stopped
+    for step in range(first_step, cfg.steps + 1):
         model.train()
-        batch = collate([sample_example(train_worms, rng, cfg) for _ in range(cfg.batch_size)], torch)
-        a, t, am, tm, target, negative = (x.to(device) for x in batch)
-        log_p = model(a, t, am, tm)
+        examples = [sample_example(train_worms, rng, cfg) for _ in range(cfg.batch_size)]
+        batch = collate(examples, torch, cfg.colour_dropout, rng)
+        a, t, am, tm, target, negative, ac, tc = (x.to(device) for x in batch)
+        colour = model.config["colour_channels"] > 0
+        log_p = model(a, t, am, tm, ac if colour else None, tc if colour else None)
         loss = matching_loss(log_p, target, negative)
         opt.zero_grad()
         loss.backward()
@@ -259,9 +307,13 @@ def train(cfg: TrainConfig, log=print) -> dict:
             model.eval()
             identifier = Identifier(model, settings, device)
             scores = {lab: pair_accuracy(identifier, pairs) for lab, pairs in val_pairs.items()}
-            mean = float(np.mean([s["top1"] for s in scores.values()])) if scores else 0.0
+            colour_scores = {lab: pair_accuracy(identifier, pairs, use_colour=True) for lab, pairs in val_pairs.items()}
+            # Keep the checkpoint best on average over labs, position-only and with colour.
+            mean = float(np.mean([s["top1"] for s in [*scores.values(), *colour_scores.values()]])) if scores else 0.0
             entry = {"step": step, "minutes": round(elapsed, 2), "loss": float(np.mean(running)),
-                     "val_top1": {k: round(v["top1"], 4) for k, v in scores.items()}, "mean_top1": round(mean, 4)}
+                     "val_top1": {k: round(v["top1"], 4) for k, v in scores.items()},
+                     "val_top1_colour": {k: round(v["top1"], 4) for k, v in colour_scores.items()},
+                     "mean_top1": round(mean, 4)}
             history.append(entry)
             running = []
             log(json.dumps(entry))
@@ -273,3 +325,36 @@ def train(cfg: TrainConfig, log=print) -> dict:
             log(f"time limit of {cfg.time_limit_min} min reached at step {step}")
             break
     return {"best_mean_top1": best, "history": history, "minutes": (time.time() - start) / 60}
+
+
+def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
+    """Fit the inference settings that are not learned by gradient descent, on validation
+    pairs of the *training* labs: the colour fusion weight (top-1 with colour) and then the
+    temperature that minimises the expected calibration error of ``auto_conf``."""
+    from .evaluate import Scores
+
+    def run(use_colour):
+        scores = Scores()
+        for pairs in val_pairs.values():
+            for template, test in pairs:
+                scores.add(identifier.label(test, [template], use_colour=use_colour), test, set(template.names))
+        return scores
+
+    settings = identifier.settings
+    best = None
+    for weight in (0.0, 0.25, 0.5, 1.0):
+        settings.colour_weight = weight
+        top1 = run(True).summary()["top1"]
+        log(f"calibrate: colour_weight {weight}: top-1 {top1:.3f}")
+        if best is None or top1 > best[1]:
+            best = (weight, top1)
+    settings.colour_weight = best[0]
+    best = None
+    for temperature in (0.6, 0.8, 1.0, 1.25, 1.5, 2.0, 3.0):
+        settings.temperature = temperature
+        ece = np.mean([run(c).summary()["ece"] for c in (False, True)])
+        log(f"calibrate: temperature {temperature}: ECE {ece:.3f}")
+        if best is None or ece < best[1]:
+            best = (temperature, ece)
+    settings.temperature = best[0]
+    return asdict(settings)
