@@ -85,6 +85,11 @@ def _train_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")
+    p.add_argument("--init-from", help="start from these weights (path without suffix; keys that fit)")
+    p.add_argument("--colour-input", action="store_true", help="give the model NeuroPAL colour as an input")
+    p.add_argument("--eval-every", type=int, default=None, help="validate every N steps")
+    p.add_argument("--val-pairs-per-lab", type=int, default=None)
+    p.add_argument("--no-calibrate", action="store_true", help="skip fitting colour weight and temperature")
     p.add_argument("--out", default="runs/model", help="checkpoint path without suffix")
     p.set_defaults(run=_run_train)
 
@@ -93,7 +98,14 @@ def _run_train(args) -> int:
     from .train import TrainConfig, train
 
     cfg = TrainConfig(corpus=args.corpus, seed=args.seed, threads=args.threads, out=args.out,
-                      time_limit_min=args.minutes, resume=args.resume)
+                      time_limit_min=args.minutes, resume=args.resume, init_from=args.init_from,
+                      calibrate=not args.no_calibrate)
+    if args.colour_input:
+        cfg.model = {**cfg.model, "colour_channels": 3}
+    if args.eval_every:
+        cfg.eval_every = args.eval_every
+    if args.val_pairs_per_lab:
+        cfg.val_pairs_per_lab = args.val_pairs_per_lab
     if args.train_labs:
         cfg.train_labs = tuple(args.train_labs)
     if args.val_labs:

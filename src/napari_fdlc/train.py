@@ -56,6 +56,7 @@ class TrainConfig:
     out: str = "runs/model"
     init_from: str | None = None  # start from these weights (keys that fit; new branches start at zero)
     resume: bool = False  # continue from the checkpoint at ``out`` (weights and step count)
+    calibrate: bool = True  # fit colour weight and temperature on training-lab validation pairs
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -324,7 +325,20 @@ def train(cfg: TrainConfig, log=print) -> dict:
         if out_of_time:
             log(f"time limit of {cfg.time_limit_min} min reached at step {step}")
             break
-    return {"best_mean_top1": best, "history": history, "minutes": (time.time() - start) / 60}
+    minutes = (time.time() - start) / 60
+    if cfg.calibrate and best >= 0:
+        from .identify import Identifier
+
+        tuned = Identifier.load(out, device)
+        own_labs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
+        settings = calibrate(tuned, own_labs, log)
+        meta = json.loads(out.with_suffix(".json").read_text())
+        meta.update(inference=settings, train_minutes=round(minutes, 1),
+                    calibration_minutes=round((time.time() - start) / 60 - minutes, 1),
+                    device=device, torch_threads=torch.get_num_threads())
+        out.with_suffix(".json").write_text(json.dumps(meta, indent=2))
+        log(f"calibrated inference settings: {settings}")
+    return {"best_mean_top1": best, "history": history, "minutes": minutes}
 
 
 def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
