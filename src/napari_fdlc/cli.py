@@ -82,6 +82,7 @@ def _train_parser(sub) -> None:
     p.add_argument("--steps", type=int, default=None)
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--minutes", type=float, default=None, help="stop after this many minutes")
+    p.add_argument("--stop-at", type=int, default=None, help="stop after this step (the LR schedule still spans --steps)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")
@@ -99,7 +100,7 @@ def _run_train(args) -> int:
 
     cfg = TrainConfig(corpus=args.corpus, seed=args.seed, threads=args.threads, out=args.out,
                       time_limit_min=args.minutes, resume=args.resume, init_from=args.init_from,
-                      calibrate=not args.no_calibrate)
+                      calibrate=not args.no_calibrate, stop_at=args.stop_at)
     if args.colour_input:
         cfg.model = {**cfg.model, "colour_channels": 3}
     if args.eval_every:

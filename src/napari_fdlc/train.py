@@ -50,6 +50,7 @@ class TrainConfig:
     eval_every: int = 250
     val_pairs_per_lab: int = 24
     time_limit_min: float | None = None
+    stop_at: int | None = None  # stop after this step (the schedule still spans ``steps``)
     threads: int | None = None
     device: str | None = None
     model: dict = field(default_factory=dict)
@@ -303,7 +304,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         sched.step()
         running.append(loss.item())
         elapsed = (time.time() - start) / 60
-        out_of_time = cfg.time_limit_min is not None and elapsed > cfg.time_limit_min
+        out_of_time = (cfg.time_limit_min is not None and elapsed > cfg.time_limit_min) or step == cfg.stop_at
         if step % cfg.eval_every == 0 or step == cfg.steps or out_of_time:
             model.eval()
             identifier = Identifier(model, settings, device)
