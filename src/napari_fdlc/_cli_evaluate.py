@@ -1,0 +1,153 @@
+"""measure accuracy, calibration and coverage of the model on annotated worms
+
+``fdlc evaluate`` runs the protocols of :mod:`napari_fdlc.evaluate` and writes a markdown report
+(tables) plus a reliability plot; ``benchmarks/accuracy.py`` is the same with the defaults used
+for docs/accuracy.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .errors import FdlcError, atomic_write
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--corpus", help="folder with worms.csv (default: ../shared/data/neuropal_corpus or $FDLC_CORPUS)")
+    p.add_argument("--labs", nargs="+", default=None)
+    p.add_argument("--weights", help="model path without suffix (default: shipped)")
+    p.add_argument("--pairs-per-lab", type=int, default=20)
+    p.add_argument("--panel-worms-per-lab", type=int, default=8)
+    p.add_argument("--synthetic-pairs", type=int, default=40)
+    p.add_argument("--no-cpd", action="store_true")
+    p.add_argument("--out", default="docs/accuracy.md", help="markdown report (the plot goes beside it in images/)")
+
+
+def run(args) -> int:
+    report = evaluate_corpus(
+        corpus=args.corpus, labs=args.labs, weights=args.weights, pairs_per_lab=args.pairs_per_lab,
+        panel_worms_per_lab=args.panel_worms_per_lab, synthetic_pairs=args.synthetic_pairs,
+        with_cpd=not args.no_cpd, out=Path(args.out),
+    )
+    print(report)
+    return 0
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, panel_worms_per_lab=8,
+                    synthetic_pairs=40, with_cpd=True, out: Path | None = None) -> str:
+    from .baselines import cpd_match, floor_match
+    from .corpus import LABS, load_corpus
+    from .evaluate import Scores, baseline_labelling, coverage_curve, pair_list, reliability
+    from .identify import Identifier
+    from .reference import build_atlas, make_panel
+    from .simulate import simulate_worm
+
+    identifier = Identifier.load(weights)
+    labs = list(labs or LABS)
+    worms = load_corpus(corpus)
+    unknown = set(labs) - {w.lab for w in worms}
+    if unknown:
+        raise FdlcError(f"no worms of lab(s) {', '.join(sorted(unknown))} in the corpus")
+    rows, calib = [], {}
+    started = time.time()
+    for lab in labs:
+        tables = [w.table for w in worms if w.lab == lab]
+        pairs = pair_list(tables, pairs_per_lab, seed=0)
+        methods = {
+            ("pairs", "fdlc", "position"): lambda T, t: identifier.label(t, [T], use_colour=False),
+            ("pairs", "fdlc", "colour"): lambda T, t: identifier.label(t, [T], use_colour=True),
+            ("pairs", "floor", "position"): lambda T, t: baseline_labelling(floor_match, t, [T], False),
+            ("pairs", "floor", "colour"): lambda T, t: baseline_labelling(floor_match, t, [T], True),
+        }
+        if with_cpd:
+            methods[("pairs", "CPD", "position")] = lambda T, t: baseline_labelling(cpd_match, t, [T], False)
+        for key, fn in methods.items():
+            scores = Scores()
+            for template, test in pairs:
+                t0 = time.perf_counter()
+                result = fn(template, test)
+                scores.add(result, test, set(template.names), time.perf_counter() - t0)
+            rows.append((lab, *key, scores.summary()))
+            if key[1] == "fdlc":
+                calib.setdefault(key[2], Scores()).correct.extend(scores.correct)
+                calib[key[2]].conf.extend(scores.conf)
+            _log(f"{lab} {key}: {rows[-1][-1]}")
+        # Panel: an atlas built WITHOUT this lab, so the names and positions it offers never
+        # come from the worms being scored.
+        if panel_worms_per_lab <= 0:
+            continue
+        panel = make_panel(build_atlas([w for w in worms if w.lab != lab]))
+        vocabulary = {n for t in panel for n in t.names}
+        for use_colour in (False, True):
+            scores = Scores()
+            for test in tables[:panel_worms_per_lab]:
+                t0 = time.perf_counter()
+                scores.add(identifier.label(test, panel, use_colour=use_colour), test, vocabulary, time.perf_counter() - t0)
+            rows.append((lab, "panel", "fdlc", "colour" if use_colour else "position", scores.summary()))
+            _log(f"{lab} panel colour={use_colour}: {rows[-1][-1]}")
+    # Held-out synthetic pairs: a worm and its simulated copy (published simulator magnitudes).
+    rng = np.random.default_rng(0)
+    synth = Scores()
+    for _ in range(synthetic_pairs):
+        source = worms[rng.integers(len(worms))].table
+        copy = simulate_worm(source, rng)
+        synth.add(identifier.label(copy.table, [source], use_colour=False), copy.table, set(source.names))
+    synthetic = synth.summary()
+    minutes = (time.time() - started) / 60
+
+    lines = ["| lab | protocol | method | input | top-1 | top-3 | ECE | neurons | ms / volume |", "|---|---|---|---|---|---|---|---|---|"]
+    for lab, protocol, method, inp, s in rows:
+        lines.append(f"| {lab} | {protocol} | {method} | {inp} | {100 * s['top1']:.1f} | {100 * s['top3']:.1f} | "
+                     f"{s['ece']:.3f} | {s['n']} | {s['ms_per_volume']:.0f} |")
+    lines.append("")
+    if synthetic_pairs:
+        lines.append(f"Synthetic pairs (simulator defaults = published magnitudes, {synthetic_pairs} pairs, position only): "
+                     f"top-1 {100 * synthetic['top1']:.1f} %, top-3 {100 * synthetic['top3']:.1f} %.")
+    lines.append("")
+    lines.append("Confidence threshold on `auto_conf` (pairs protocol, all labs): coverage and accuracy of the labels kept.")
+    lines.append("")
+    lines.append("| input | threshold | coverage | accuracy |")
+    lines.append("|---|---|---|---|")
+    for inp, s in calib.items():
+        conf, correct = np.asarray(s.conf), np.asarray(s.correct, float)
+        for t, cov, acc in coverage_curve(conf, correct):
+            lines.append(f"| {inp} | {t:.2f} | {100 * cov:.1f} | {100 * acc:.1f} |")
+    report = "\n".join(lines)
+    if out is not None:
+        _plot_reliability(calib, out.parent / "images" / "calibration.png", reliability)
+        with atomic_write(out, "w", encoding="utf-8") as handle:
+            handle.write("# Accuracy on the annotated corpus\n\n")
+            handle.write(f"Made by `fdlc evaluate --pairs-per-lab {pairs_per_lab} --panel-worms-per-lab {panel_worms_per_lab} "
+                         f"--synthetic-pairs {synthetic_pairs}` ({minutes:.1f} min). See docs/benchmarks.md for how to read it.\n\n")
+            handle.write(report + "\n\n![reliability](images/calibration.png)\n")
+    return report
+
+
+def _plot_reliability(calib, path: Path, reliability) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(4.5, 4.5))
+    ax.plot([0, 1], [0, 1], "k--", lw=1, label="perfect")
+    for inp, s in calib.items():
+        bins = reliability(np.asarray(s.conf), np.asarray(s.correct, float))
+        ax.plot([b[0] for b in bins], [b[1] for b in bins], "o-", label=f"fdlc ({inp})")
+    ax.set_xlabel("auto_conf")
+    ax.set_ylabel("accuracy")
+    ax.set_title("Reliability (pairs within each lab)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
