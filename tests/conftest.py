@@ -56,3 +56,13 @@ def random_table(n: int, seed: int = 0, named: bool = True) -> NeuronTable:
     labels = np.array([f"N{i}" if named else "" for i in range(n)], dtype=object)
     colours = {c: rng.gamma(2.0, 100.0, n) for c in "RGB"}
     return NeuronTable(xyz, colours, labels)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _one_torch_thread():
+    """Small tensors run fastest on one thread; and the suite must not fight a second job."""
+    try:
+        import torch
+    except ImportError:
+        return
+    torch.set_num_threads(1)

@@ -1,0 +1,56 @@
+import numpy as np
+
+from napari_fdlc.reference import Atlas, atlas_worm, build_atlas, generate_worm, load_atlas, load_panel
+
+
+def test_shipped_atlas_and_panel():
+    atlas = load_atlas()
+    assert len(atlas.names) > 100 and len(set(atlas.names)) == len(atlas.names)
+    assert np.all(atlas.sd > 0) and np.all((atlas.frequency > 0) & (atlas.frequency <= 1))
+    panel = load_panel()
+    assert len(panel) >= 2 and all(t.named.all() for t in panel)
+
+
+def test_atlas_round_trip(tmp_path):
+    atlas = load_atlas()
+    atlas.save(tmp_path / "a.csv")
+    back = Atlas.load(tmp_path / "a.csv")
+    assert list(back.names) == list(atlas.names)
+    assert np.allclose(back.mean, atlas.mean, atol=1e-3)
+    assert back.labs == atlas.labs
+
+
+def test_generated_worm_is_plausible_and_deterministic():
+    a, b = generate_worm(seed=3), generate_worm(seed=3)
+    assert np.array_equal(a.xyz, b.xyz)
+    assert 60 <= len(a) <= 250 and a.named.all()
+    assert np.all(a.xyz > 0)
+    assert all(np.all(v > 0) for v in a.colours.values())  # raw-looking intensities
+
+
+def test_build_atlas_recovers_a_known_layout():
+    """Worms that are rotated, mirrored (acquisition convention) and noisy copies of one layout
+    give back that layout up to a similarity transform."""
+    from napari_fdlc.corpus import Worm
+    from napari_fdlc.table import NeuronTable
+
+    truth = atlas_worm(load_atlas())
+    rng = np.random.default_rng(0)
+    worms = []
+    for k in range(6):
+        angle = rng.uniform(-np.pi, np.pi)
+        c, s = np.cos(angle), np.sin(angle)
+        xyz = truth.xyz @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + rng.normal(0, 0.5, truth.xyz.shape)
+        if k % 2:
+            xyz[:, 2] *= -1
+        worms.append(Worm("X", str(k), NeuronTable(xyz, truth.colours, truth.labels)))
+    atlas = build_atlas(worms)
+    assert set(atlas.names) == set(truth.labels)
+    order = [list(truth.labels).index(n) for n in atlas.names]
+    ref = truth.xyz[order] - truth.xyz[order].mean(0)
+    got = atlas.mean - atlas.mean.mean(0)
+    # compare pairwise distances (invariant to the similarity transform)
+    from scipy.spatial.distance import pdist
+
+    assert np.corrcoef(pdist(ref), pdist(got))[0, 1] > 0.99
+    assert np.median(atlas.sd) < 1.0

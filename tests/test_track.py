@@ -1,0 +1,203 @@
+"""fdlc track: sequences of volumes of one worm -> track IDs (and names) per time point."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from napari_fdlc.cli import main
+from napari_fdlc.errors import FdlcError
+from napari_fdlc.table import NeuronTable, write_table
+from napari_fdlc.track import (
+    SequenceParams,
+    TrackSettings,
+    fit_warp,
+    read_sequence,
+    simulate_sequence,
+    track,
+    tracking_accuracy,
+)
+
+GENTLE = SequenceParams(frames=8, bend_curvature=0.002, roll=0.05, xy_rotation=0.3, drift_um=4.0,
+                        drop_fraction=(0.0, 0.05), max_spurious=3, jitter_um=0.2)
+
+
+@pytest.fixture(scope="module")
+def identifier(untrained_weights):
+    from napari_fdlc.identify import Identifier
+
+    return Identifier.load(untrained_weights, device="cpu")
+
+
+@pytest.fixture(scope="module")
+def gentle(worm):
+    return simulate_sequence(worm, 3, GENTLE)
+
+
+def _sequence_csv(volumes, path, labels=None):
+    frames = []
+    for t, v in enumerate(volumes):
+        df = v.to_dataframe().drop(columns=["label"])
+        df.insert(0, "t", t)
+        frames.append(df)
+    df = pd.concat(frames, ignore_index=True)
+    write_table(df, path)
+    return path
+
+
+def test_moved_copies_track_near_perfectly_with_untrained_model(identifier, gentle):
+    """The geometric prior and the propagated warp do the work: even an untrained model tracks
+    slightly moved, jittered copies with drops and spurious points."""
+    volumes, origins = gentle
+    result = track(volumes, identifier=identifier, settings=TrackSettings(use_colour=False))
+    score = tracking_accuracy(result, origins, origins[0])
+    assert score["accuracy"] >= 0.95, score
+    # The reference is the first volume: it is matched to itself.
+    ids0 = result.track_id[0]
+    real0 = origins[0] >= 0
+    assert (ids0[real0] == np.flatnonzero(real0)).mean() >= 0.97
+    # Only the first volume needed the orientation search; the rest were propagated.
+    searched = [any(i["searched"]) for i in result.info]
+    assert searched[0] and not any(searched[1:])
+    assert all(len(t) == len(v) for t, v in zip(result.track_id, volumes))
+    assert all(((c >= 0) & (c <= 1)).all() for c in result.confidence)
+
+
+def test_shuffled_exact_copies_are_tracked_exactly(identifier, worm):
+    rng = np.random.default_rng(0)
+    volumes, perms = [], []
+    for _ in range(4):
+        perm = rng.permutation(len(worm))
+        volumes.append(worm.subset(perm))
+        perms.append(perm)
+    result = track(volumes, references=[worm], identifier=identifier, settings=TrackSettings(use_colour=False))
+    for tid, perm in zip(result.track_id, perms):
+        assert (tid == perm).mean() >= 0.98
+
+
+def test_batching_and_placement_modes_agree_on_gentle_motion(identifier, gentle):
+    volumes, origins = gentle
+    for settings in (TrackSettings(use_colour=False, chunk=1), TrackSettings(use_colour=False, chunk=3, refine_steps=1),
+                     TrackSettings(use_colour=False, placement="model", chunk=1)):
+        assert tracking_accuracy(track(volumes, identifier=identifier, settings=settings), origins, origins[0])["accuracy"] >= 0.93
+
+
+def test_several_references_share_track_ids(identifier, gentle):
+    volumes, origins = gentle
+    result = track(volumes, references=[volumes[0], volumes[5]], identifier=identifier,
+                   settings=TrackSettings(use_colour=False))
+    assert tracking_accuracy(result, origins, origins[0])["accuracy"] >= 0.93
+    assert {i["reference"] for i in result.info} <= {0, 1}
+
+
+def test_labelled_reference_gives_names(identifier, worm):
+    moved = NeuronTable(worm.xyz + [3.0, -2.0, 0.5], worm.colours)
+    result = track([moved, moved], references=[worm], identifier=identifier, settings=TrackSettings(use_colour=False))
+    df = result.frame([moved, moved])
+    assert "name" in df.columns
+    assert (df["name"].to_numpy()[: len(worm)] == worm.labels).mean() >= 0.98
+
+
+def test_fit_warp_recovers_a_bend():
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(150, 3)) * [30, 8, 6]
+    dst = src.copy()
+    dst[:, 1] += 0.004 * src[:, 0] ** 2  # a bend
+    warp = fit_warp(src, dst, np.ones(len(src)), sigma=20.0, smoothness=0.01)
+    assert np.sqrt(((warp(src) - dst) ** 2).sum(1).mean()) < 0.3
+    affine_only = fit_warp(src, dst, np.ones(len(src)), sigma=0.0)
+    assert np.sqrt(((affine_only(src) - dst) ** 2).sum(1).mean()) > 1.0
+
+
+# ------------------------------------------------------------------------------------------------
+# Input and the command line
+
+def test_read_sequence_csv_with_t_column(tmp_path, gentle):
+    volumes, _ = gentle
+    path = _sequence_csv(volumes[:3], tmp_path / "seq.csv")
+    seq = read_sequence([str(path)])
+    assert seq.times == [0, 1, 2]
+    assert [len(v) for v in seq.volumes] == [len(v) for v in volumes[:3]]
+    assert np.allclose(seq.volumes[1].xyz, volumes[1].xyz, atol=1e-4)
+    assert "t" not in seq.volumes[0].extra.columns
+
+
+def test_read_sequence_folder_in_natural_order(tmp_path, gentle):
+    volumes, _ = gentle
+    folder = tmp_path / "vols"
+    for k, name in ((2, "t2"), (7, "t10"), (1, "t1")):
+        write_table(volumes[k], folder / f"vol_{name}.csv")
+    (folder / "notes.txt").write_text("not a table")
+    seq = read_sequence([str(folder)])
+    assert seq.sources == ["vol_t1.csv", "vol_t2.csv", "vol_t10.csv"]
+    assert len(seq.volumes[2]) == len(volumes[7])
+
+
+def test_cli_track_csv_with_t_column(tmp_path, gentle, untrained_weights):
+    volumes, origins = gentle
+    src = _sequence_csv(volumes, tmp_path / "seq.csv")
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(src), "--weights", str(untrained_weights), "--no-color", "--quiet", "--out", str(out)]) == 0
+    df = pd.read_csv(out)
+    assert list(df.columns[:7]) == ["t", "neuron_index", "x_um", "y_um", "z_um", "track_id", "track_conf"]
+    assert len(df) == sum(len(v) for v in volumes)
+    assert sorted(df["t"].unique()) == list(range(len(volumes)))
+    first = df[df["t"] == 0]
+    assert (first["track_id"].to_numpy() == first["neuron_index"].to_numpy()).mean() >= 0.97
+    assert df["track_conf"].between(0, 1).all()
+    assert df["track_id"].min() >= -1
+
+
+def test_cli_track_folder_with_labelled_reference(tmp_path, worm, untrained_weights):
+    folder = tmp_path / "vols"
+    for k in range(3):
+        write_table(NeuronTable(worm.xyz + [k, 0.5 * k, 0], worm.colours), folder / f"t{k}.csv")
+    ref = tmp_path / "ref.csv"
+    write_table(worm, ref)
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(folder), "--reference", str(ref), "--weights", str(untrained_weights), "--quiet", "--out", str(out)]) == 0
+    df = pd.read_csv(out, keep_default_na=False)
+    assert {"name", "file"} <= set(df.columns)
+    assert list(df["file"].unique()) == ["t0.csv", "t1.csv", "t2.csv"]
+    assert (df["name"].to_numpy() == np.tile(worm.labels, 3)).mean() >= 0.98
+
+
+@pytest.mark.parametrize(
+    "make, expected",
+    [
+        (lambda d, v: write_table(v, d / "no_t.csv") or d / "no_t.csv", "no 't' column"),
+        (lambda d, v: _bad_t(d, v), "column 't'"),
+        (lambda d, v: (d / "empty").mkdir() or d / "empty", "holds no .csv file"),
+        (lambda d, v: d / "missing.csv", "no such file"),
+    ],
+)
+def test_cli_track_bad_input_is_one_line(tmp_path, capsys, worm, untrained_weights, make, expected):
+    src = make(tmp_path, worm)
+    out = tmp_path / "tracks.csv"
+    code = main(["track", str(src), "--weights", str(untrained_weights), "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert expected in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
+def _bad_t(folder, worm):
+    df = worm.to_dataframe()
+    df.insert(0, "t", ["0"] * (len(df) - 1) + ["soon"])
+    write_table(df, folder / "bad_t.csv")
+    return folder / "bad_t.csv"
+
+
+def test_cli_track_bad_reference_time(tmp_path, capsys, gentle, untrained_weights):
+    volumes, _ = gentle
+    src = _sequence_csv(volumes[:2], tmp_path / "seq.csv")
+    code = main(["track", str(src), "--reference-t", "7", "--weights", str(untrained_weights), "--out", str(tmp_path / "o.csv")])
+    assert code == 2 and "no time point 7" in capsys.readouterr().err
+
+
+def test_track_settings_are_checked():
+    with pytest.raises(FdlcError, match="chunk"):
+        TrackSettings(chunk=0).check()
+    with pytest.raises(FdlcError, match="search"):
+        TrackSettings(search="sideways").check()

@@ -1,0 +1,75 @@
+import numpy as np
+import pytest
+import torch
+
+from napari_fdlc.model import CorrespondenceModel, matching_loss
+from napari_fdlc.reference import generate_worm
+from napari_fdlc.simulate import simulate_worm
+from napari_fdlc.train import TRAIN_SIM, TrainConfig, _crop, collate, make_example, split_worms
+
+
+def _examples(count, seed=0):
+    rng = np.random.default_rng(seed)
+    cfg = TrainConfig(negative_fraction=0.0, aligned_fraction=0.0)
+    out = []
+    while len(out) < count:
+        template = _crop(generate_worm(seed=len(out) + 10), 48, rng)
+        synth = simulate_worm(template, rng, TRAIN_SIM)
+        target = np.where(synth.origin >= 0, synth.origin, len(template))
+        example = make_example(template, synth.table, target, rng, cfg)
+        if example is not None:
+            out.append(example)
+    return out
+
+
+def test_tiny_training_run_overfits_a_handful_of_pairs():
+    """The training machinery end to end (examples, padding, colour flags, loss, optimiser):
+    a small model must fit 4 pairs almost perfectly within seconds."""
+    torch.manual_seed(0)
+    examples = _examples(4)
+    rng = np.random.default_rng(0)
+    model = CorrespondenceModel({"dim": 32, "layers": 2, "colour_channels": 3})
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    batch = collate(examples, torch, colour_dropout=0.0, rng=rng)
+    a, t, am, tm, target, negative, ac, tc = batch
+    for _ in range(150):
+        loss = matching_loss(model(a, t, am, tm, ac, tc), target, negative)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        pred = model(a, t, am, tm, ac, tc).argmax(-1)
+    valid = target >= 0
+    accuracy = (pred[valid] == target[valid]).float().mean().item()
+    assert accuracy >= 0.95, accuracy
+
+
+def test_negative_examples_target_no_match():
+    log_p = torch.log_softmax(torch.randn(1, 3, 5), -1)
+    target = torch.tensor([[0, 1, -1]])
+    neg = matching_loss(log_p, target, torch.tensor([True]))
+    expected = -(log_p[0, 0, 4] + log_p[0, 1, 4]) / 2
+    assert neg.item() == pytest.approx(expected.item(), rel=1e-5)
+
+
+def test_split_keeps_validation_worms_out_of_training():
+    from napari_fdlc.corpus import Worm
+
+    worms = [Worm(lab, f"{lab}{i}", generate_worm(seed=i)) for lab in ("A", "B") for i in range(5)]
+    cfg = TrainConfig(train_labs=("A",), val_labs=("A", "B"), val_worms_per_lab=2)
+    train, val = split_worms(worms, cfg, np.random.default_rng(0))
+    assert {w.lab for w in train} == {"A"} and len(train) == 3
+    held = {w.name for w in val["A"][:2]}
+    assert not held & {w.name for w in train}
+    assert len(val["B"]) == 5  # a held-out lab is validated whole
+
+
+def test_training_on_the_corpus_runs(corpus_path, tmp_path):
+    from napari_fdlc.model import load_model
+    from napari_fdlc.train import train
+
+    cfg = TrainConfig(corpus=str(corpus_path), steps=3, eval_every=3, batch_size=2, val_pairs_per_lab=1,
+                      val_labs=("SF",), model={"dim": 16, "layers": 1}, out=str(tmp_path / "m"), calibrate=False)
+    result = train(cfg, log=lambda *_: None)
+    assert result["history"][-1]["step"] == 3
+    load_model(tmp_path / "m")
