@@ -1,0 +1,94 @@
+"""``fdlc track``: give every neuron of a sequence of volumes its track ID (and name) over time.
+
+Input: one neuron table with a ``t`` column (time point), a folder of neuron tables (one volume
+each, natural name order), or several tables (in the order given). Track IDs are the row indices
+of the first reference volume (default: the first time point); with a labelled reference each
+track also gets the reference neuron's name. Output: one CSV, one row per neuron per time point:
+``t, neuron_index, x_um, y_um, z_um, track_id, track_conf`` (+ ``name``, + ``file``);
+``track_id`` is -1 for a neuron left untracked, ``track_conf`` the probability of the ID given
+(or of "untracked").
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from .errors import FdlcError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("inputs", nargs="+", metavar="INPUT",
+                        help="a CSV with a t column, a folder of CSVs, or several CSVs (one volume each)")
+    parser.add_argument("--reference", action="append", default=[], metavar="R.csv",
+                        help="reference volume of the same worm, labelled or not (repeatable); default: the first time point")
+    parser.add_argument("--reference-t", action="append", default=[], metavar="T",
+                        help="use the volume at time point T of the sequence as a reference (repeatable)")
+    parser.add_argument("--search", choices=("propagate", "full"), default="propagate",
+                        help="propagate (default): full orientation search on the first volume only, then "
+                        "each volume is placed from the one before; full: search every volume (slower)")
+    parser.add_argument("--placement", choices=("geometry", "model"), default="geometry",
+                        help="how a volume is placed from the one before (default geometry: cheap, lets volumes batch)")
+    parser.add_argument("--refine-steps", type=int, default=0, help="extra model passes per volume (default 0)")
+    parser.add_argument("--chunk", type=int, default=16, help="volumes per model batch (default 16)")
+    parser.add_argument("--no-color", "--no-colour", dest="no_colour", action="store_true", help="positions only")
+    parser.add_argument("--method", choices=("fdlc", "cpd"), default="fdlc", help="fdlc (default) or cpd (classical baseline)")
+    parser.add_argument("--weights", help="model weights (path without suffix); default: the shipped model")
+    parser.add_argument("--threads", type=int, default=None, help="CPU threads for the model (default: torch's)")
+    parser.add_argument("--out", required=True, help="output CSV")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def run(args: argparse.Namespace) -> int:
+    from .table import read_table, write_table
+    from .track import TrackSettings, read_sequence, track
+
+    settings = TrackSettings(search=args.search, placement=args.placement, refine_steps=args.refine_steps,
+                             chunk=args.chunk, use_colour=not args.no_colour)
+    settings.check()
+    out = Path(args.out)
+    if out.is_dir():
+        raise FdlcError(f"{out}: --out must be a CSV file, not a folder")
+    if not out.parent.exists():
+        raise FdlcError(f"{out}: the folder {out.parent} does not exist")
+    if args.threads is not None and args.threads < 1:
+        raise FdlcError(f"--threads must be at least 1 (got {args.threads})")
+    # Validate every input before any model work.
+    seq = read_sequence(args.inputs)
+    references = [read_table(r) for r in args.reference]
+    for raw in args.reference_t:
+        references.append(_volume_at(seq, raw))
+    if args.method == "cpd" and len(references) > 1:
+        raise FdlcError("--method cpd takes one reference")
+    identifier = None
+    if args.method == "fdlc":
+        from .identify import Identifier, default_identifier
+
+        if args.threads:
+            import torch
+
+            torch.set_num_threads(args.threads)
+        identifier = Identifier.load(args.weights) if args.weights else default_identifier()
+    start = time.perf_counter()
+
+    def progress(done: int, total: int) -> None:
+        if not args.quiet and total > 1:
+            rate = done / max(time.perf_counter() - start, 1e-9)
+            print(f"fdlc track: {done}/{total} volumes ({rate:.0f}/s)", file=sys.stderr, flush=True)
+
+    result = track(seq, references or None, identifier, settings, progress, method=args.method)
+    write_table(result.frame(seq.volumes), out)
+    return 0
+
+
+def _volume_at(seq, raw: str):
+    try:
+        value = float(raw)
+    except ValueError:
+        raise FdlcError(f"--reference-t {raw}: not a number") from None
+    for t, volume in zip(seq.times, seq.volumes):
+        if float(t) == value:
+            return volume
+    raise FdlcError(f"--reference-t {raw}: no time point {raw} in the sequence")

@@ -1,0 +1,579 @@
+"""Track neurons through a sequence of volumes of one moving worm (``fdlc track``).
+
+Every volume is matched to one or several *reference* volumes of the same worm with the fDLC
+model and the one-to-one assignment of :mod:`napari_fdlc.match`; a neuron's **track ID** is the
+index of its partner in the first reference (references after the first are matched to the
+first once, so they share its IDs; their neurons it lacks get new IDs after its last). When the
+reference is labelled, each track also carries the reference neuron's name.
+
+Speed comes from the worm moving smoothly. Consecutive volumes share their orientation and
+nearly their pose, so only the first volume gets the full search (8 orientations, see
+:mod:`napari_fdlc.geometry`); every later volume is *placed* in the reference's frame by the warp
+found for the volume before it (an affine map plus a smooth non-rigid displacement, fitted on that
+volume's matches, see :class:`Warp`). With ``placement="geometry"`` (default) the placement of
+each volume is refined without the model (one-to-one assignment on distance, then its own warp;
+about a millisecond), so a whole chunk of ``chunk`` volumes then goes through the model as one
+batch; with ``placement="model"`` each chunk starts from the model's answer for the volume
+before it. ``refine_steps`` more model passes re-place each volume with the warp fitted on its
+own answer. A volume that the model is much less willing to match than the first volume (a
+jump, a lost placement) is searched again in all 8 orientations, so one bad volume does not
+derail the rest of the sequence.
+
+``search="full"`` runs the full search (what ``fdlc label`` does) on every volume instead.
+``method="cpd"`` tracks with the classical CPD baseline (each volume to the reference), for
+comparison.
+
+:func:`simulate_sequence` makes synthetic sequences with known tracks: the worm's pose (bend,
+roll, rotation and position in XY, scale) changes smoothly over time, and each volume gets its own
+segmentation noise (dropped neurons, spurious detections, position jitter).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from .errors import FdlcError, TableError
+from .geometry import ORIENTATIONS, apply_affine, canonical_frame, fit_affine
+from .match import assign
+from .table import COORDS, NeuronTable, read_table
+
+UNTRACKED = -1
+
+
+@dataclass
+class TrackSettings:
+    search: str = "propagate"  # "propagate" (orientation from the previous volume) or "full"
+    refine_steps: int = 0  # model passes per volume after the first, each re-placed by its own warp
+    chunk: int = 16  # volumes that go through the model as one batch
+    research_ratio: float = 0.5  # full search again when a volume's match rate < this × the first volume's
+    use_colour: bool = True
+    combine: str = "best"  # several references: "best" (the one the model matches best) or "mean"
+    no_match_weight: float = 0.2  # see match.assign
+    warp_sigma_um: float = 20.0  # width of the smooth non-rigid part of the propagated warp (0: affine only)
+    warp_smoothness: float = 0.3  # ridge on the non-rigid part
+    warp_min_prob: float = 0.1  # matches less likely than this do not shape the warp
+    placement: str = "geometry"  # "geometry": cheap sequential pre-placement, then one model batch per chunk; "model"
+    gate_um: float = 4.0  # geometric pre-placement: farther pairs stay unpaired
+
+    def check(self) -> None:
+        if self.search not in ("propagate", "full"):
+            raise FdlcError(f"unknown search '{self.search}' (use propagate or full)")
+        if self.combine not in ("best", "mean"):
+            raise FdlcError(f"unknown combine '{self.combine}' (use best or mean)")
+        if self.refine_steps < 0:
+            raise FdlcError(f"refine steps must be 0 or more (got {self.refine_steps})")
+        if self.chunk < 1:
+            raise FdlcError(f"chunk must be at least 1 (got {self.chunk})")
+        if self.placement not in ("geometry", "model"):
+            raise FdlcError(f"unknown placement '{self.placement}' (use geometry or model)")
+
+
+@dataclass
+class Sequence:
+    """Volumes of one recording in time order."""
+
+    volumes: list[NeuronTable]
+    times: list  # the time value of each volume (the CSV's t, or 0..T-1 for a folder)
+    sources: list[str] = field(default_factory=list)  # file per volume ('' for a t-column CSV)
+
+    def __len__(self) -> int:
+        return len(self.volumes)
+
+
+@dataclass
+class TrackResult:
+    track_id: list[np.ndarray]  # per volume, (N_t,) track ID per neuron, -1 = untracked
+    confidence: list[np.ndarray]  # per volume, probability of the ID given (or of "untracked")
+    names: list[str]  # name of each track ID ('' = unnamed)
+    info: list[dict]  # per volume: reference used, match rate, whether searched in full
+    times: list = field(default_factory=list)
+    sources: list[str] = field(default_factory=list)
+
+    def frame(self, volumes: list[NeuronTable]) -> pd.DataFrame:
+        """One row per neuron per time point, in input order within each time point:
+        ``t, neuron_index, x_um, y_um, z_um, track_id, track_conf`` (+ ``name`` when a reference
+        is labelled, + ``file`` for a folder of CSVs)."""
+        times = self.times or list(range(len(volumes)))
+        parts = []
+        named = any(self.names)
+        for k, vol in enumerate(volumes):
+            n = len(vol)
+            df = pd.DataFrame({"t": [times[k]] * n, "neuron_index": np.arange(n)})
+            for i, c in enumerate(COORDS):
+                df[c] = vol.xyz[:, i]
+            df["track_id"] = self.track_id[k]
+            df["track_conf"] = np.round(self.confidence[k], 6)
+            if named:
+                df["name"] = [self.names[i] if i >= 0 else "" for i in self.track_id[k]]
+            if self.sources and self.sources[k]:
+                df["file"] = self.sources[k]
+            parts.append(df)
+        return pd.concat(parts, ignore_index=True)
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading a sequence
+
+def _natural_key(name: str):
+    return [int(s) if s.isdigit() else s.lower() for s in re.split(r"(\d+)", name)]
+
+
+def read_sequence(paths: list[str] | str) -> Sequence:
+    """A sequence from one CSV with a ``t`` column, a folder of CSVs (one volume each, in natural
+    name order: ``t2`` before ``t10``), or several CSVs (in the order given)."""
+    paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
+    if not paths:
+        raise FdlcError("no input: give a CSV with a t column or a folder of CSVs")
+    if len(paths) == 1:
+        path = Path(paths[0])
+        if path.is_dir():
+            files = sorted((p for p in path.iterdir() if p.is_file() and p.suffix.lower() == ".csv"),
+                           key=lambda p: _natural_key(p.name))
+            if not files:
+                raise FdlcError(f"{path}: the folder holds no .csv file")
+            return Sequence([read_table(f) for f in files], list(range(len(files))), [f.name for f in files])
+        return split_by_time(read_table(path))
+    missing = [p for p in paths if Path(p).is_dir()]
+    if missing:
+        raise FdlcError(f"{missing[0]}: a folder can only be given alone")
+    return Sequence([read_table(p) for p in paths], list(range(len(paths))), [Path(p).name for p in paths])
+
+
+def split_by_time(table: NeuronTable) -> Sequence:
+    """Split a table with a ``t`` column into its time points (sorted by t)."""
+    name = table.source
+    if "t" not in table.extra.columns:
+        raise TableError(f"{name}: no 't' column (a sequence is one CSV with a t column, or a folder of CSVs)")
+    raw = table.extra["t"].astype(str).str.strip()
+    t = pd.to_numeric(raw.where(raw != "", "nan"), errors="coerce").to_numpy(dtype=np.float64)
+    bad = ~np.isfinite(t)
+    if bad.any():
+        row = int(np.argmax(bad))
+        raise TableError(f"{name}: line {row + 2}, column 't': {raw.iloc[row] or 'an empty cell'} is not a finite number")
+    values = np.unique(t)
+    volumes, times = [], []
+    for v in values:
+        rows = np.flatnonzero(t == v)
+        sub = table.subset(rows)
+        sub.extra = sub.extra.drop(columns=["t"])
+        sub.source = f"{name} (t={_time_value(v)})"
+        volumes.append(sub)
+        times.append(_time_value(v))
+    return Sequence(volumes, times, [""] * len(volumes))
+
+
+def _time_value(v: float):
+    return int(v) if float(v).is_integer() else float(v)
+
+
+# ----------------------------------------------------------------------------------------------
+# Tracking
+
+@dataclass
+class Warp:
+    """Recording µm -> a reference's frame: an affine map plus a smooth displacement (Gaussian
+    radial basis functions centred on the neurons it was fitted on), so that a bent worm is
+    carried onto the reference's pose, not only turned and scaled."""
+
+    affine: np.ndarray  # 4×3, see geometry.apply_affine
+    centres: np.ndarray | None = None  # (K, 3) recording µm
+    coef: np.ndarray | None = None  # (K, 3)
+    sigma: float = 12.0
+
+    def __call__(self, xyz: np.ndarray) -> np.ndarray:
+        out = apply_affine(xyz, self.affine)
+        if self.centres is not None and len(self.centres):
+            out = out + _gauss(xyz, self.centres, self.sigma) @ self.coef
+        return out
+
+
+def _gauss(x: np.ndarray, c: np.ndarray, sigma: float) -> np.ndarray:
+    d2 = (x**2).sum(1)[:, None] + (c**2).sum(1)[None, :] - 2 * x @ c.T
+    return np.exp(-np.maximum(d2, 0.0) / (2 * sigma**2))
+
+
+def fit_warp(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, sigma: float = 12.0, smoothness: float = 1.0) -> Warp:
+    """Weighted fit of ``dst ≈ warp(src)``: first an affine map, then a Gaussian-RBF displacement
+    of the residual with a ridge (``smoothness``) that keeps it smooth; ``sigma`` <= 0: affine only."""
+    weights = np.asarray(weights, float)
+    affine = fit_affine(src, dst, weights)
+    keep = weights > 0
+    if sigma <= 0 or keep.sum() < 4:
+        return Warp(affine, sigma=sigma)
+    c, w = src[keep], weights[keep]
+    residual = dst[keep] - apply_affine(c, affine)
+    kernel = _gauss(c, c, sigma)
+    coef = np.linalg.solve(w[:, None] * kernel + smoothness * np.eye(len(c)), w[:, None] * residual)
+    return Warp(affine, c, coef, sigma)
+
+
+class _Reference:
+    def __init__(self, table: NeuronTable, ids: np.ndarray):
+        self.table = table
+        self.xyz, _, _ = canonical_frame(table.xyz)
+        self.ids = ids  # track ID of each of its neurons
+        self.warp: Warp | None = None  # the last volume's recording µm -> this reference's frame
+        self.first_rate = None  # match rate of the first volume (found with a full search)
+
+
+def _match_rate(log_p: np.ndarray) -> float:
+    """Geometric mean over test neurons of p(matched): how willing the model is to match this
+    placement (the model puts its mass on "no match" when the worms are not aligned)."""
+    return float(np.exp(np.log1p(-np.exp(np.minimum(log_p[:, -1], -1e-6))).mean()))
+
+
+def _finish(identifier, ref: _Reference, volume: NeuronTable, lp: np.ndarray, s: TrackSettings) -> dict:
+    """Calibrated, colour-fused log p, its one-to-one assignment onto the reference's neurons,
+    and the warp that carries this volume onto the reference (fitted on the assignment)."""
+    rate = _match_rate(lp)
+    calibrate = getattr(identifier, "_calibrate", None)
+    if calibrate is not None:
+        lp = calibrate(lp)
+    if s.use_colour:
+        lp = identifier._fuse_colour(lp, ref.table, volume)
+    p = np.exp(lp[:, :-1])
+    choice = assign(p, None, s.no_match_weight)
+    matched = choice >= 0
+    weight = np.where(matched, p[np.arange(len(p)), np.maximum(choice, 0)], 0.0)
+    weight[weight < s.warp_min_prob] = 0.0
+    target = ref.xyz[np.maximum(choice, 0)]
+    warp = fit_warp(volume.xyz, target, weight, s.warp_sigma_um, s.warp_smoothness)
+    return {"log_p": lp, "choice": choice, "warp": warp, "rate": rate}
+
+
+def _model_colours(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings):
+    """Colour inputs for a model trained with colour (see Identifier._model_colours)."""
+    pick = getattr(identifier, "_model_colours", None)
+    return pick(ref.table, volumes, s.use_colour) if pick is not None else (None, None)
+
+
+def _full_search(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings) -> list[np.ndarray]:
+    """Log p of each volume in the best of the 8 orientations (no refinement)."""
+    orientations = ORIENTATIONS if identifier.settings.chirality_search else ORIENTATIONS[:4]
+    starts = [np.einsum("kij,nj->kni", orientations, canonical_frame(v.xyz)[0]) for v in volumes]
+    tc, sc = _model_colours(identifier, ref, volumes, s)
+    extra = {} if tc is None else {"template_colour": tc, "test_colours": sc}
+    return [f["log_p"] for f in identifier._align(ref.xyz, starts, 0, **extra)]
+
+
+def _placed(identifier, ref: _Reference, volumes: list[NeuronTable], warps: list[Warp], s: TrackSettings) -> list[np.ndarray]:
+    """Log p of each volume placed in the reference frame by its warp, as one batch."""
+    tc, sc = _model_colours(identifier, ref, volumes, s)
+    extra = () if tc is None else (tc, sc)
+    return identifier._forward_many(ref.xyz, [w(v.xyz) for v, w in zip(volumes, warps)], *extra)
+
+
+def _geometric_step(ref: _Reference, volume: NeuronTable, warp: Warp, s: TrackSettings) -> Warp:
+    """Cheap placement of the next volume (no model): place it with the previous warp, pair it
+    with the reference by the one-to-one assignment on squared distance (pairs further apart
+    than ``gate_um`` stay unpaired), and fit its own warp on those pairs."""
+    from scipy.optimize import linear_sum_assignment
+
+    placed = warp(volume.xyz)
+    d2 = ((placed[:, None, :] - ref.xyz[None, :, :]) ** 2).sum(-1)
+    n, m = d2.shape
+    gate = s.gate_um**2
+    cost = np.full((n, m + n), 1e9)
+    cost[:, :m] = np.minimum(d2, 1e8)
+    cost[np.arange(n), m + np.arange(n)] = gate
+    rows, cols = linear_sum_assignment(cost)
+    paired = cols < m
+    if paired.sum() < 4:
+        return warp
+    weights = np.zeros(n)
+    weights[rows[paired]] = 1.0
+    target = np.zeros((n, 3))
+    target[rows[paired]] = ref.xyz[cols[paired]]
+    return fit_warp(volume.xyz, target, weights, s.warp_sigma_um, s.warp_smoothness)
+
+
+def _match_chunk(identifier, ref: _Reference, chunk: list[NeuronTable], s: TrackSettings) -> list[dict]:
+    """Match a chunk of consecutive volumes to one reference; updates the reference's warp.
+
+    Each volume is placed with the warp of the last volume before the chunk (or, for the very
+    first volume, and with ``search="full"``, by the full orientation search), then refined
+    ``refine_steps`` times with its own warp, fitted on its own assignment."""
+    found: list[dict | None] = [None] * len(chunk)
+    searched = [False] * len(chunk)
+    if s.search == "full" or ref.warp is None:
+        first = list(range(len(chunk))) if s.search == "full" else [0]
+        for i, lp in zip(first, _full_search(identifier, ref, [chunk[i] for i in first], s)):
+            found[i] = _finish(identifier, ref, chunk[i], lp, s)
+            searched[i] = True
+        if ref.first_rate is None:
+            ref.first_rate = found[0]["rate"]
+        if ref.warp is None:
+            ref.warp = found[0]["warp"]
+    rest = [i for i in range(len(chunk)) if found[i] is None]
+    if rest:
+        if s.placement == "geometry":
+            warps, warp = [], ref.warp
+            for i in rest:
+                warp = _geometric_step(ref, chunk[i], warp, s)
+                warps.append(warp)
+        else:
+            warps = [ref.warp] * len(rest)
+        lps = _placed(identifier, ref, [chunk[i] for i in rest], warps, s)
+        for i, lp in zip(rest, lps):
+            found[i] = _finish(identifier, ref, chunk[i], lp, s)
+        lost = [i for i in rest if found[i]["rate"] < s.research_ratio * ref.first_rate]
+        for i, lp in zip(lost, _full_search(identifier, ref, [chunk[i] for i in lost], s)):
+            again = _finish(identifier, ref, chunk[i], lp, s)
+            if again["rate"] > found[i]["rate"]:
+                found[i], searched[i] = again, True
+    for _ in range(s.refine_steps):
+        lps = _placed(identifier, ref, chunk, [f["warp"] for f in found], s)
+        found = [_finish(identifier, ref, v, lp, s) for v, lp in zip(chunk, lps)]
+    for f, flag in zip(found, searched):
+        f["searched"] = flag
+    ref.warp = found[-1]["warp"]
+    return found
+
+
+def _id_probs(found: dict, ref: _Reference, n_ids: int) -> np.ndarray:
+    p = np.exp(found["log_p"][:, :-1])
+    out = np.zeros((len(p), n_ids))
+    np.add.at(out.T, ref.ids, p.T)
+    return out
+
+
+def _link_references(identifier, tables: list[NeuronTable], s: TrackSettings) -> list[np.ndarray]:
+    """Track IDs of every reference's neurons: the first reference's indices; the others are
+    matched to the first once (full search, then re-placed by their own warp twice; one-to-one),
+    and what it lacks gets new IDs."""
+    from dataclasses import replace
+
+    first = tables[0]
+    ids = [np.arange(len(first))]
+    next_id = len(first)
+    for table in tables[1:]:
+        link = replace(s, search="full", refine_steps=max(2, s.refine_steps),
+                       use_colour=s.use_colour and _has_colour(first, table))
+        own = _match_chunk(identifier, _Reference(first, ids[0]), [table], link)[0]["choice"].copy()
+        new = np.flatnonzero(own < 0)
+        own[new] = next_id + np.arange(len(new))
+        next_id += len(new)
+        ids.append(own)
+    return ids
+
+
+def _has_colour(a: NeuronTable, b: NeuronTable) -> bool:
+    from .colour import shared_channels
+
+    return bool(shared_channels(a, b))
+
+
+def track(
+    volumes: list[NeuronTable] | Sequence,
+    references: list[NeuronTable] | None = None,
+    identifier=None,
+    settings: TrackSettings | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    method: str = "fdlc",
+) -> TrackResult:
+    """Track IDs (and names, when a reference is labelled) for every neuron of every volume.
+
+    ``references`` default to the first volume. ``progress(done, total)`` is called after each
+    chunk of volumes.
+    """
+    seq = volumes if isinstance(volumes, Sequence) else Sequence(list(volumes), list(range(len(volumes))))
+    s = settings or TrackSettings()
+    s.check()
+    if method not in ("fdlc", "cpd"):
+        raise FdlcError(f"unknown method '{method}' (use fdlc or cpd)")
+    if len(seq) == 0:
+        raise FdlcError("the sequence has no volume")
+    tables = list(references) if references else [seq.volumes[0]]
+    if method == "cpd":
+        return _track_cpd(seq, tables, s, progress)
+    if identifier is None:
+        from .identify import default_identifier
+
+        identifier = default_identifier()
+    use_colour = s.use_colour
+    ids = _link_references(identifier, tables, s)
+    refs = [_Reference(t, i) for t, i in zip(tables, ids)]
+    n_ids = int(max(i.max() for i in ids)) + 1
+    names = [""] * n_ids
+    for ref in reversed(refs):  # the first reference's names win
+        for i, n in zip(ref.ids, ref.table.labels):
+            if n:
+                names[i] = n
+    result = TrackResult([], [], names, [], list(seq.times), list(seq.sources))
+    total = len(seq)
+    for start in range(0, total, s.chunk):
+        chunk = seq.volumes[start : start + s.chunk]
+        per_ref = []
+        for ref in refs:
+            s_ref = s if use_colour and _has_colour(ref.table, chunk[0]) else _no_colour(s)
+            per_ref.append(_match_chunk(identifier, ref, chunk, s_ref))
+        for k in range(len(chunk)):
+            found = [pr[k] for pr in per_ref]
+            if s.combine == "best" or len(refs) == 1:
+                used = int(np.argmax([f["rate"] for f in found]))
+                # The assignment onto the reference's own neurons is the answer (IDs relabel them).
+                f, ref = found[used], refs[used]
+                p = np.exp(f["log_p"])
+                rows = np.arange(len(p))
+                tid = np.where(f["choice"] >= 0, ref.ids[np.maximum(f["choice"], 0)], UNTRACKED)
+                conf = np.where(f["choice"] >= 0, p[rows, np.maximum(f["choice"], 0)], np.clip(1 - p[:, :-1].sum(1), 0, 1))
+            else:
+                probs = np.mean([_id_probs(f, ref, n_ids) for f, ref in zip(found, refs)], axis=0)
+                used = -1
+                tid, conf = _assign_ids(probs, s.no_match_weight)
+            result.track_id.append(tid)
+            result.confidence.append(conf)
+            result.info.append({"reference": used, "match_rate": [f["rate"] for f in found],
+                                "searched": [f["searched"] for f in found]})
+        if progress is not None:
+            progress(min(start + s.chunk, total), total)
+    return result
+
+
+def _no_colour(s: TrackSettings) -> TrackSettings:
+    from dataclasses import replace
+
+    return replace(s, use_colour=False)
+
+
+def _assign_ids(probs: np.ndarray, no_match_weight: float) -> tuple[np.ndarray, np.ndarray]:
+    choice = assign(probs, None, no_match_weight)
+    no_match = np.clip(1.0 - probs.sum(axis=1), 0.0, 1.0)
+    rows = np.arange(len(probs))
+    conf = np.where(choice >= 0, probs[rows, np.maximum(choice, 0)], no_match)
+    return choice.astype(int), conf
+
+
+def _track_cpd(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, progress) -> TrackResult:
+    """The classical baseline: every volume to the first reference with CPD (all 8 orientations)."""
+    from .baselines import cpd_match
+
+    ref = tables[0]
+    names = list(ref.labels)
+    result = TrackResult([], [], names, [], list(seq.times), list(seq.sources))
+    for k, vol in enumerate(seq.volumes):
+        probs = cpd_match(ref, vol)
+        tid, conf = _assign_ids(probs[:, :-1], s.no_match_weight)
+        result.track_id.append(tid)
+        result.confidence.append(conf)
+        result.info.append({"reference": 0})
+        if progress is not None:
+            progress(k + 1, len(seq))
+    return result
+
+
+# ----------------------------------------------------------------------------------------------
+# Synthetic sequences with known tracks
+
+@dataclass
+class SequenceParams:
+    frames: int = 100
+    bend_curvature: float = 0.006  # 1/µm: the largest |curvature| of the centreline bend
+    bend_period: float = 60.0  # frames per bending cycle (crawling)
+    roll: float = 0.25  # radians: largest turn about the body axis (y-z plane)
+    xy_rotation: float = 0.6  # radians: largest turn in XY over the sequence
+    drift_um: float = 15.0  # largest translation in XY over the sequence
+    scale: float = 0.03  # each axis scaled by 1 ± this, smoothly
+    drop_fraction: tuple[float, float] = (0.03, 0.12)  # of neurons missed, per volume
+    max_spurious: int = 8  # spurious detections per volume, at least 2 µm from real ones
+    jitter_um: float = 0.42  # Gaussian segmentation jitter per volume
+
+
+def _smooth(rng, frames: int, period: float) -> np.ndarray:
+    """A smooth random curve in [-1, 1] over ``frames`` steps: a few sinusoids of periods
+    around ``period`` with random phases."""
+    t = np.arange(frames)
+    curve = np.zeros(frames)
+    for _ in range(3):
+        f = 1.0 / (period * rng.uniform(0.7, 1.5))
+        curve += rng.uniform(0.5, 1.0) * np.sin(2 * np.pi * f * t + rng.uniform(0, 2 * np.pi))
+    return curve / max(np.abs(curve).max(), 1e-9)
+
+
+def _bend(canon: np.ndarray, kappa: float, phi: float) -> np.ndarray:
+    """Bend the straight worm (body axis x) onto a circular arc of curvature ``kappa`` in the
+    plane at angle ``phi`` from y toward z."""
+    if abs(kappa) < 1e-9:
+        return canon.copy()
+    x, y, z = canon.T
+    lateral = y * np.cos(phi) + z * np.sin(phi)
+    other = -y * np.sin(phi) + z * np.cos(phi)
+    radius = 1.0 / kappa
+    theta = x / radius
+    bx = (radius - lateral) * np.sin(theta)
+    blat = radius - (radius - lateral) * np.cos(theta)
+    return np.column_stack([bx, blat * np.cos(phi) - other * np.sin(phi), blat * np.sin(phi) + other * np.cos(phi)])
+
+
+def simulate_sequence(
+    table: NeuronTable,
+    rng: np.random.Generator | int | None = None,
+    params: SequenceParams | None = None,
+) -> tuple[list[NeuronTable], list[np.ndarray]]:
+    """Volumes of ``table``'s worm moving smoothly; returns (volumes, origin per volume) where
+    ``origin[t][j]`` is the source row of neuron j of volume t (-1 = spurious)."""
+    from .simulate import _spurious_points
+
+    rng = np.random.default_rng(rng)
+    p = params or SequenceParams()
+    canon, centre, rotation = canonical_frame(table.xyz)
+    T = p.frames
+    span = max(T, 2)
+    kappa = p.bend_curvature * _smooth(rng, T, p.bend_period)
+    phi = 0.2 * _smooth(rng, T, 2 * p.bend_period)
+    roll = p.roll * _smooth(rng, T, 2 * p.bend_period)
+    angle = p.xy_rotation * _smooth(rng, T, 2 * span)
+    drift = p.drift_um * np.column_stack([_smooth(rng, T, 2 * span), _smooth(rng, T, 2 * span)])
+    scales = 1 + p.scale * np.column_stack([_smooth(rng, T, p.bend_period) for _ in range(3)])
+    volumes, origins = [], []
+    for t in range(T):
+        pts = _bend(canon, kappa[t], phi[t])
+        c, s = np.cos(roll[t]), np.sin(roll[t])
+        pts[:, 1:] = pts[:, 1:] @ np.array([[c, -s], [s, c]]).T
+        pts = pts * scales[t]
+        c, s = np.cos(angle[t]), np.sin(angle[t])
+        pts = pts @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+        pts[:, :2] += drift[t]
+        n = len(pts)
+        keep = rng.random(n) >= rng.uniform(*p.drop_fraction)
+        origin = np.flatnonzero(keep)
+        pts = pts[keep]
+        spurious = _spurious_points(pts, int(rng.integers(0, p.max_spurious + 1)), 2.0, rng)
+        pts = np.vstack([pts, spurious]) + rng.normal(0, p.jitter_um, (len(pts) + len(spurious), 3))
+        origin = np.concatenate([origin, np.full(len(spurious), -1)])
+        order = rng.permutation(len(pts))
+        pts, origin = pts[order] @ rotation + centre, origin[order]
+        real = origin >= 0
+        colours = {}
+        for ch, values in table.colours.items():
+            v = np.empty(len(pts))
+            v[real] = values[origin[real]] * rng.normal(1.0, 0.05, real.sum())
+            v[~real] = rng.choice(values, (~real).sum()) if (~real).any() else v[~real]
+            colours[ch] = v
+        volumes.append(NeuronTable(pts, colours, source=f"synthetic sequence t={t}"))
+        origins.append(origin)
+    return volumes, origins
+
+
+def tracking_accuracy(result: TrackResult, origins: list[np.ndarray], reference_origin: np.ndarray) -> dict:
+    """Against the truth of :func:`simulate_sequence` with the reference ``reference_origin``
+    (the origin array of the reference volume): ``accuracy`` = fraction of neurons whose true
+    partner is in the reference that get its track ID; ``untracked_right`` = fraction of the
+    others (spurious, or missing from the reference) left untracked."""
+    where = {o: i for i, o in enumerate(reference_origin) if o >= 0}
+    hit = total = free_right = free_total = 0
+    for tid, origin in zip(result.track_id, origins):
+        truth = np.array([where.get(o, UNTRACKED) if o >= 0 else UNTRACKED for o in origin])
+        has = truth >= 0
+        hit += int((tid[has] == truth[has]).sum())
+        total += int(has.sum())
+        free_right += int((tid[~has] == UNTRACKED).sum())
+        free_total += int((~has).sum())
+    return {"accuracy": hit / max(total, 1), "untracked_right": free_right / max(free_total, 1),
+            "neurons": total}
