@@ -208,8 +208,14 @@ def fit_warp(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, sigma: float
         return Warp(affine, sigma=sigma)
     c, w = src[keep], weights[keep]
     residual = dst[keep] - apply_affine(c, affine)
-    kernel = _gauss(c, c, sigma)
-    coef = np.linalg.solve(w[:, None] * kernel + smoothness * np.eye(len(c)), w[:, None] * residual)
+    # (K + smoothness W^-1) coef = residual: symmetric positive definite, so Cholesky. In torch:
+    # beside torch's own threads, numpy/scipy's threaded OpenBLAS can take 50-500x longer.
+    import torch
+
+    system = _gauss(c, c, sigma)
+    system[np.diag_indices_from(system)] += smoothness / w
+    factor = torch.linalg.cholesky(torch.from_numpy(system))
+    coef = torch.cholesky_solve(torch.from_numpy(residual), factor).numpy()
     return Warp(affine, c, coef, sigma)
 
 
