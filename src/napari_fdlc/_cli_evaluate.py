@@ -91,7 +91,7 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
             scores = Scores()
             for test in tables[:panel_worms_per_lab]:
                 t0 = time.perf_counter()
-                scores.add(identifier.label(test, panel, use_colour=use_colour), test, vocabulary, time.perf_counter() - t0)
+                scores.add(identifier.label(test, panel, use_colour=use_colour, shared_frame=True), test, vocabulary, time.perf_counter() - t0)
             rows.append((lab, "panel", "fdlc", "colour" if use_colour else "position", scores.summary()))
             _log(f"{lab} panel colour={use_colour}: {rows[-1][-1]}")
     # Held-out synthetic pairs: a worm and its simulated copy (published simulator magnitudes).

@@ -172,16 +172,20 @@ class Identifier:
                 r["log_p"] = lp
         return results
 
-    def match_pair(self, template: NeuronTable, test: NeuronTable, use_colour: bool = True) -> tuple[np.ndarray, dict]:
+    def match_pair(
+        self, template: NeuronTable, test: NeuronTable, use_colour: bool = True, orientation: int | None = None
+    ) -> tuple[np.ndarray, dict]:
         """Probabilities (N_test, M_template + 1) that each test neuron is each template neuron
-        (last column: no match), with the chosen orientation in the info dict."""
+        (last column: no match), with the chosen orientation in the info dict. ``orientation``
+        skips the search (an index into ``geometry.ORIENTATIONS`` already known to be right)."""
         a, _, _ = canonical_frame(template.xyz)
         b, _, _ = canonical_frame(test.xyz)
-        orientations = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:4]
-        candidates = np.einsum("kij,nj->kni", orientations, b)
+        searched = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:4]
+        indices = list(range(len(searched))) if orientation is None else [orientation]
+        candidates = np.einsum("kij,nj->kni", ORIENTATIONS[indices], b)
         tc, sc = self._model_colours(template, [test], use_colour)
         found = self._align(a, [candidates], template_colour=tc, test_colours=sc)[0]
-        best, willingness, lp = found["best"], found["willingness"], found["log_p"]
+        best, willingness, lp = indices[found["best"]], found["willingness"], found["log_p"]
         lp = self._calibrate(lp)
         if use_colour:
             lp = self._fuse_colour(lp, template, test)
@@ -244,8 +248,13 @@ class Identifier:
         templates: list[NeuronTable],
         use_colour: bool = True,
         fixed: dict[int, str] | None = None,
+        shared_frame: bool = False,
     ) -> Labelling:
-        """Names for every test neuron from one or several labelled templates."""
+        """Names for every test neuron from one or several labelled templates.
+
+        ``shared_frame``: the templates lie in one frame (the built-in panel: all drawn from one
+        atlas), so the test's orientation found against the first holds for all of them.
+        """
         if self.model is None:
             raise ModelError("no model loaded")
         if not templates:
@@ -255,8 +264,11 @@ class Identifier:
                 warn("no colour channel in common with the template(s): identifying by position only")
             use_colour = False
         per_template, infos = [], []
+        orientation = None
         for template in templates:
-            probs, info = self.match_pair(template, test, use_colour)
+            probs, info = self.match_pair(template, test, use_colour, orientation)
+            if shared_frame:
+                orientation = info["orientation"]
             per_template.append((probs[:, :-1], template.labels))
             infos.append(info)
         names, probs = name_probabilities(per_template)
@@ -298,8 +310,9 @@ def label_neurons(
     from .reference import load_panel
 
     identifier = identifier or default_identifier()
+    panel = not templates
     templates = templates if templates else load_panel()
     for t in templates:
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron")
-    return identifier.label(test, templates, use_colour=use_colour, fixed=fixed)
+    return identifier.label(test, templates, use_colour=use_colour, fixed=fixed, shared_frame=panel)

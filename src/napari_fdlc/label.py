@@ -80,8 +80,9 @@ def label_files(
         from .reference import load_panel
 
         identifier = Identifier.load(weights) if weights else default_identifier()
-        panel = template_tables or load_panel()
-        results = [label_neurons(t, panel, use_colour, identifier=identifier) for t in test_tables]
+        if not template_tables:
+            load_panel()  # refuse a missing panel before any work
+        results = [label_neurons(t, template_tables or None, use_colour, identifier=identifier) for t in test_tables]
     else:
         results = [cpd_labelling(t, template_tables, use_colour) for t in test_tables]
     if len(paths) > 1:
