@@ -234,9 +234,9 @@ def _match_rate(log_p: np.ndarray) -> float:
     return float(np.exp(np.log1p(-np.exp(np.minimum(log_p[:, -1], -1e-6))).mean()))
 
 
-def _finish(identifier, ref: _Reference, volume: NeuronTable, lp: np.ndarray, s: TrackSettings) -> dict:
+def _finish(identifier, ref: _Reference, volume: NeuronTable, lp: np.ndarray, s: TrackSettings, fit: bool = True) -> dict:
     """Calibrated, colour-fused log p, its one-to-one assignment onto the reference's neurons,
-    and the warp that carries this volume onto the reference (fitted on the assignment)."""
+    and (``fit``) the warp that carries this volume onto the reference, fitted on the assignment."""
     rate = _match_rate(lp)
     calibrate = getattr(identifier, "_calibrate", None)
     if calibrate is not None:
@@ -249,7 +249,7 @@ def _finish(identifier, ref: _Reference, volume: NeuronTable, lp: np.ndarray, s:
     weight = np.where(matched, p[np.arange(len(p)), np.maximum(choice, 0)], 0.0)
     weight[weight < s.warp_min_prob] = 0.0
     target = ref.xyz[np.maximum(choice, 0)]
-    warp = fit_warp(volume.xyz, target, weight, s.warp_sigma_um, s.warp_smoothness)
+    warp = fit_warp(volume.xyz, target, weight, s.warp_sigma_um, s.warp_smoothness) if fit else None
     return {"log_p": lp, "choice": choice, "warp": warp, "rate": rate}
 
 
@@ -326,16 +326,21 @@ def _match_chunk(identifier, ref: _Reference, chunk: list[NeuronTable], s: Track
         else:
             warps = [ref.warp] * len(rest)
         lps = _placed(identifier, ref, [chunk[i] for i in rest], warps, s)
+        last = len(chunk) - 1
+        # A warp of its own is needed only to re-place a volume (refine steps) or to start the
+        # next chunk from (the last volume).
         for i, lp in zip(rest, lps):
-            found[i] = _finish(identifier, ref, chunk[i], lp, s)
+            found[i] = _finish(identifier, ref, chunk[i], lp, s, fit=i == last or s.refine_steps > 0)
         lost = [i for i in rest if found[i]["rate"] < s.research_ratio * ref.first_rate]
         for i, lp in zip(lost, _full_search(identifier, ref, [chunk[i] for i in lost], s)):
-            again = _finish(identifier, ref, chunk[i], lp, s)
+            again = _finish(identifier, ref, chunk[i], lp, s, fit=i == last or s.refine_steps > 0)
             if again["rate"] > found[i]["rate"]:
                 found[i], searched[i] = again, True
-    for _ in range(s.refine_steps):
+    for step in range(s.refine_steps):
         lps = _placed(identifier, ref, chunk, [f["warp"] for f in found], s)
-        found = [_finish(identifier, ref, v, lp, s) for v, lp in zip(chunk, lps)]
+        more = step < s.refine_steps - 1
+        found = [_finish(identifier, ref, v, lp, s, fit=more or k == len(chunk) - 1)
+                 for k, (v, lp) in enumerate(zip(chunk, lps))]
     for f, flag in zip(found, searched):
         f["searched"] = flag
     ref.warp = found[-1]["warp"]
