@@ -39,6 +39,9 @@ class InferenceSettings:
     temperature: float = 1.0  # divides the log-probabilities (calibration, fitted on training labs)
     chirality_search: bool = True  # also try the z-mirrored recording convention
     orientation_score: str = "willingness"  # or "assignment" (see Identifier._align)
+    # Prior against the mirrored convention: a bilaterally symmetric head matches almost as well
+    # mirrored, and most recordings are not mirrored; fitted on training labs (train.calibrate).
+    mirror_penalty: float = 0.0
     no_match_weight: float = 0.2  # see match.assign
 
     @classmethod
@@ -156,6 +159,8 @@ class Identifier:
                 # Mean log-probability of the one-to-one assignment: unlike willingness alone it
                 # rewards orientations where neurons find *distinct* partners.
                 willingness = np.array([assignment_score(lp) for lp in lps])
+            if len(lps) == len(ORIENTATIONS):
+                willingness = willingness - self.settings.mirror_penalty * (np.arange(len(lps)) >= 4)
             best = int(np.argmax(willingness))
             results.append({"best": best, "willingness": willingness, "log_p": lps[best],
                             "moved": cands[best], "affine": np.vstack([np.eye(3), np.zeros((1, 3))])})

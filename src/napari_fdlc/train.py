@@ -346,8 +346,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
 
 def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
     """Fit the inference settings that are not learned by gradient descent, on validation
-    pairs of the *training* labs: the colour fusion weight (top-1 with colour) and then the
-    temperature that minimises the expected calibration error of ``auto_conf``."""
+    pairs of the *training* labs: the prior against mirrored recordings (top-1, position only),
+    the colour fusion weight (top-1 with colour), then the temperature that minimises the
+    expected calibration error of ``auto_conf``."""
     from .evaluate import Scores
 
     def run(use_colour):
@@ -358,6 +359,14 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
         return scores
 
     settings = identifier.settings
+    best = None
+    for penalty in (0.0, 0.02, 0.05, 0.1, 0.2):
+        settings.mirror_penalty = penalty
+        top1 = run(False).summary()["top1"]
+        log(f"calibrate: mirror_penalty {penalty}: top-1 {top1:.3f}")
+        if best is None or top1 > best[1]:
+            best = (penalty, top1)
+    settings.mirror_penalty = best[0]
     best = None
     for weight in (0.0, 0.25, 0.5, 1.0):
         settings.colour_weight = weight
