@@ -106,3 +106,22 @@ def test_one_neuron_test(tmp_path, table_files, untrained_weights):
     out = tmp_path / "one_out.csv"
     assert run("label", one, "--template", template, "--weights", untrained_weights, "--out", out) == 0
     assert len(pd.read_csv(out)) == 1
+
+
+def test_simulate_writes_known_correspondence(tmp_path, table_files):
+    test, _ = table_files
+    assert run("simulate", test, "--count", "2", "--seed", "1", "--out", tmp_path / "syn") == 0
+    files = sorted((tmp_path / "syn").iterdir())
+    assert [f.name for f in files] == ["test_syn0.csv", "test_syn1.csv"]
+    df = pd.read_csv(files[0], keep_default_na=False)
+    source = pd.read_csv(test, keep_default_na=False)
+    real = df["origin"] >= 0
+    assert (df.loc[real, "label"].to_numpy() == source["label"].to_numpy()[df.loc[real, "origin"]]).all()
+
+
+def test_atlas_command_reproduces_the_shipped_atlas(tmp_path, corpus_path):
+    from napari_fdlc.reference import shipped_atlas_path
+
+    out = tmp_path / "atlas.csv"
+    assert run("atlas", "--corpus", corpus_path, "--out", out) == 0
+    assert out.read_text() == shipped_atlas_path().read_text()

@@ -120,6 +120,25 @@ def _run_train(args) -> int:
     return 0
 
 
+def _atlas_parser(sub) -> None:
+    p = sub.add_parser("atlas", help="build the reference atlas (the built-in panel) from an annotated corpus")
+    p.add_argument("--corpus", help="folder with worms.csv (default: ../shared/data/neuropal_corpus or $FDLC_CORPUS)")
+    p.add_argument("--labs", nargs="+", default=None, help="labs to use (default: all)")
+    p.add_argument("--min-frequency", type=float, default=0.2, help="keep names seen in at least this fraction of worms")
+    p.add_argument("--out", required=True, help="atlas CSV (the shipped one is src/napari_fdlc/data/atlas.csv)")
+    p.set_defaults(run=_run_atlas)
+
+
+def _run_atlas(args) -> int:
+    from .corpus import load_corpus
+    from .reference import build_atlas
+
+    atlas = build_atlas(load_corpus(args.corpus, args.labs), min_frequency=args.min_frequency)
+    atlas.save(args.out)
+    print(f"{len(atlas.names)} names from {atlas.worms} worms of {', '.join(atlas.labs)} -> {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fdlc", description="Identify and track C. elegans neurons (fDLC).")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -134,6 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(run=_cli_segment.run)
     _simulate_parser(sub)
     _train_parser(sub)
+    _atlas_parser(sub)
     for name, module in (("evaluate", "_cli_evaluate"), ("track", "_cli_track")):
         try:
             mod = __import__(f"napari_fdlc.{module}", fromlist=["add_arguments", "run"])
