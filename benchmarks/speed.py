@@ -1,0 +1,201 @@
+"""Speed: per-volume latency, batched throughput and memory of fdlc, beside CPD, in one run.
+
+    python benchmarks/speed.py [--weights PATH] [--threads 2] [--repeats 30] [--batch 64]
+
+Latency is the median wall time for one test volume (~130 neurons) from tables in memory to the
+one-to-one assignment and the top-3 candidates done, model loaded and warm. "Batched" is
+volumes per second when many volumes are given at once. Configurations:
+
+* full, 1 template: orientation and chirality search (8 orientations) + affine refinement +
+  colour, what ``fdlc label --template T`` does, i.e. the configuration of the accuracy figures;
+* full, panel: the same against the built-in reference panel (5 templates), what Auto-label does;
+* track: ``fdlc track`` defaults (full search on the first volume only; every later volume placed
+  by the warp of the one before, one model pass, assignment); latency = one volume at a time
+  (chunk 1, what a live recording needs), batched = chunk 16; the first volume's search is
+  included in the average;
+* CPD: ``baselines.cpd_match`` (8 orientations) + the same assignment and candidates.
+
+Peak memory: Python/numpy allocations (tracemalloc) during one run of each configuration, and
+the process's peak resident size at the end (``ru_maxrss``; includes torch itself). With CUDA,
+the fdlc rows are repeated on the GPU. Prints a markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+# numpy's OpenBLAS threads fight torch's for the same cores: a 150×150 solve then takes 100+ ms
+# instead of 0.3 ms, which would slow CPD (numpy throughout) far more than fdlc. One BLAS thread
+# for numpy keeps the comparison fair; torch's threads are set by --threads.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+
+def _weights(path: str | None) -> Path:
+    from napari_fdlc.identify import shipped_weights
+
+    if path:
+        return Path(path)
+    if shipped_weights().with_suffix(".safetensors").exists():
+        return shipped_weights()
+    runs = sorted(Path("runs").glob("*/model.safetensors"), key=lambda p: p.stat().st_mtime)
+    if runs:
+        return runs[-1].with_suffix("")
+    sys.exit("no weights: pass --weights (no shipped model and nothing under runs/)")
+
+
+def _median_ms(fn, repeats: int) -> tuple[float, float]:
+    """(median wall ms, median CPU ms of this process) over ``repeats`` calls after one warm-up."""
+    fn()
+    walls, cpus = [], []
+    for _ in range(repeats):
+        c0, t0 = time.process_time(), time.perf_counter()
+        fn()
+        walls.append((time.perf_counter() - t0) * 1e3)
+        cpus.append((time.process_time() - c0) * 1e3)
+    return statistics.median(walls), statistics.median(cpus)
+
+
+def _rate(fn, volumes: int) -> float:
+    fn()
+    t0 = time.perf_counter()
+    fn()
+    return volumes / (time.perf_counter() - t0)
+
+
+def _peak_mb(fn) -> float:
+    tracemalloc.start()
+    fn()
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return peak / 2**20
+
+
+def _label_many(identifier, tests, templates, use_colour=True):
+    """Identifier.label for many tests, each template's matches batched over the tests."""
+    from napari_fdlc.match import make_labelling, name_probabilities
+
+    per_test = [[] for _ in tests]
+    for template in templates:
+        for k, (probs, _) in enumerate(identifier.match_many(template, tests, use_colour)):
+            per_test[k].append((probs[:, :-1], template.labels))
+    out = []
+    for per in per_test:
+        names, probs = name_probabilities(per)
+        lab = make_labelling(names, probs, None, {}, identifier.settings.no_match_weight)
+        lab.candidates(3)
+        out.append(lab)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--weights", default=None, help="model path without suffix (default: shipped, else newest runs/*/model)")
+    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    ap.add_argument("--repeats", type=int, default=30, help="latency runs per configuration (median)")
+    ap.add_argument("--batch", type=int, default=64, help="volumes for the batched figures")
+    ap.add_argument("--cpd-repeats", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from napari_fdlc.baselines import cpd_match
+    from napari_fdlc.identify import Identifier
+    from napari_fdlc.match import make_labelling, name_probabilities
+    from napari_fdlc.reference import generate_worm, load_panel
+    from napari_fdlc.simulate import simulate_worm
+    from napari_fdlc.track import SequenceParams, TrackSettings, simulate_sequence, track
+
+    weights = _weights(args.weights)
+    template = generate_worm(seed=1)
+    source = generate_worm(seed=2)
+    rng = np.random.default_rng(args.seed)
+    tests = [simulate_worm(source, rng).table for _ in range(args.batch)]
+    test = min(tests, key=lambda t: abs(len(t) - 130))
+    panel = load_panel()
+    sequence, _ = simulate_sequence(source, args.seed, SequenceParams(frames=args.batch))
+
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    rows: dict[str, dict] = {}
+
+    def cpd_one():
+        probs = cpd_match(template, test)
+        names, p = name_probabilities([(probs[:, :-1], template.labels)])
+        make_labelling(names, p).candidates(3)
+
+    for device in devices:
+        ident = Identifier.load(weights, device=device)
+        reps = args.repeats
+        configs = {
+            "fdlc full, 1 template": (
+                lambda: ident.label(test, [template]).candidates(3),
+                lambda: _label_many(ident, tests, [template]),
+                len(tests),
+            ),
+            f"fdlc full, panel ({len(panel)} templates)": (
+                lambda: ident.label(test, panel).candidates(3),
+                lambda: _label_many(ident, tests[:16], panel),
+                16,
+            ),
+            "fdlc track (propagated, chunk 1 / 16)": (
+                lambda: track(sequence, identifier=ident, settings=TrackSettings(chunk=1)),
+                lambda: track(sequence, identifier=ident, settings=TrackSettings(chunk=16)),
+                len(sequence),
+            ),
+        }
+        for name, (one, many, count) in configs.items():
+            row = rows.setdefault(name, {})
+            if name.startswith("fdlc track"):
+                # latency per volume of a streamed sequence (one volume at a time)
+                wall, cpu = _median_ms(one, max(1, reps // 10))
+                wall, cpu = wall / len(sequence), cpu / len(sequence)
+            else:
+                wall, cpu = _median_ms(one, reps if "panel" not in name else max(3, reps // 5))
+            row[f"{device}_ms"], row[f"{device}_cpu_ms"] = wall, cpu
+            row[f"{device}_rate"] = _rate(many, count)
+            if device == "cpu":
+                row["peak_mb"] = _peak_mb(one)
+            print(f"  {device} {name}: {wall:.1f} ms/volume, {row[f'{device}_rate']:.0f} volumes/s", file=sys.stderr, flush=True)
+    wall, cpu = _median_ms(cpd_one, args.cpd_repeats)
+    rows["CPD (pycpd, 8 orientations)"] = {"cpu_ms": wall, "cpu_cpu_ms": cpu, "cpu_rate": 1000.0 / wall, "peak_mb": _peak_mb(cpd_one)}
+    print(f"  cpu CPD: {wall:.1f} ms/volume", file=sys.stderr, flush=True)
+
+    cpd_ms = rows["CPD (pycpd, 8 orientations)"]["cpu_ms"]
+    load = os.getloadavg()
+    print(f"# speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__}, "
+          f"{args.threads} torch thread(s), OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}; weights {weights}")
+    print(f"test volume: {len(test)} neurons; template {len(template)} neurons; panel {len(panel)} templates; "
+          f"batched over {args.batch} volumes (panel: 16); load average before the run {load[0]:.1f}")
+    print()
+    head = "| configuration | latency, ms/volume (CPU ms) | batched, volumes/s | CPD ÷ fdlc latency | peak Python memory, MB |"
+    sep = "|---|---|---|---|---|"
+    if "cuda" in devices:
+        head = head[:-1] + " GPU latency, ms | GPU batched, volumes/s |"
+        sep += "---|---|"
+    print(head)
+    print(sep)
+    for name, r in rows.items():
+        ratio = "1" if name.startswith("CPD") else f"{cpd_ms / r['cpu_ms']:.0f}×"
+        line = f"| {name} | {r['cpu_ms']:.1f} ({r['cpu_cpu_ms']:.1f}) | {r['cpu_rate']:.0f} | {ratio} | {r['peak_mb']:.1f} |"
+        if "cuda" in devices:
+            line += f" {r['cuda_ms']:.1f} | {r['cuda_rate']:.0f} |" if "cuda_ms" in r else " – | – |"
+        print(line)
+    print()
+    print(f"process peak resident memory: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB (torch included)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,276 @@
+"""The Track dock widget: neurons of a recording over time, as napari Tracks plus labelled Points.
+
+Pick a sequence (one neuron table with a ``t`` column, or a folder of neuron tables) and,
+optionally, a reference volume (labelled: tracks get its names; default: the first time point),
+then *Track*. The core (:func:`napari_fdlc.track.track`) runs in a ``thread_worker``; the
+progress bar follows it. Two layers come back, in µm (scale 1), with time as the first axis:
+
+* ``<name> tracks`` — a Tracks layer, one track per reference neuron (track ID = its row);
+* ``<name> neurons`` — a Points layer of every neuron at the current time point (napari slices
+  the time axis), with features ``t, track_id, track_conf, name`` and the name (or track ID) as
+  text.
+
+The viewer is switched to 3D display, so that the whole volume of the current time point shows.
+
+Scripting::
+
+    w = TrackWidget(viewer); viewer.window.add_dock_widget(w)
+    w.identifier = my_identifier         # default: the shipped model
+    w.set_sequence("recording.csv"); w.set_reference("labelled_t0.csv")
+    w.run()                               # returns when the layers are in (wait=False: at once)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from qtpy.QtCore import QEventLoop, QObject, Signal
+from qtpy.QtWidgets import (
+    QCheckBox,
+    QFileDialog,
+    QFormLayout,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QProgressBar,
+    QPushButton,
+    QVBoxLayout,
+    QWidget,
+)
+
+from ..errors import FdlcError
+
+if TYPE_CHECKING:  # pragma: no cover
+    import napari
+
+
+class _Signals(QObject):
+    progress = Signal(int, int)  # emitted from the worker thread, delivered on the GUI thread
+
+
+def track_layers(result, sequence, name: str = "sequence") -> list[tuple]:
+    """napari layer data tuples ``(data, kwargs, type)`` for a :class:`TrackResult`: Tracks of
+    the tracked neurons and Points of all neurons, time (volume index) first, then z, y, x in µm."""
+    rows, points, feats = [], [], {"t": [], "track_id": [], "track_conf": [], "name": []}
+    for k, (vol, tid, conf) in enumerate(zip(sequence.volumes, result.track_id, result.confidence)):
+        zyx = vol.xyz[:, ::-1]
+        points.append(np.column_stack([np.full(len(vol), k), zyx]))
+        names = [result.names[i] if i >= 0 else "" for i in tid]
+        feats["t"].extend([sequence.times[k]] * len(vol))
+        feats["track_id"].extend(tid.tolist())
+        feats["track_conf"].extend(conf.tolist())
+        feats["name"].extend(names)
+        tracked = tid >= 0
+        rows.append(np.column_stack([tid[tracked], np.full(tracked.sum(), k), zyx[tracked]]))
+    data = np.vstack(rows) if rows else np.zeros((0, 5))
+    data = data[np.lexsort((data[:, 1], data[:, 0]))]  # napari wants tracks sorted by ID, then time
+    track_names = {int(i): n for i, n in enumerate(result.names)}
+    labelled = any(result.names)
+    ids = np.asarray(feats["track_id"])
+    text = [n if n else (str(i) if i >= 0 else "") for n, i in zip(feats["name"], ids)]
+    colours = _id_colours(ids)
+    meta = {"fdlc": {"tracks": True, "times": list(sequence.times), "names": track_names if labelled else {}}}
+    tracks = (data, {"name": f"{name} tracks", "tail_length": 10, "blending": "translucent",
+                     "axis_labels": ("t", "z", "y", "x"), "metadata": meta}, "tracks")
+    pts = (np.vstack(points), {
+        "name": f"{name} neurons", "features": feats, "size": 3.0, "face_color": colours,
+        "border_color": "white", "border_width": 0.05, "out_of_slice_display": False,
+        "text": {"string": text, "size": 8, "color": "white", "anchor": "upper_left"},
+        "axis_labels": ("t", "z", "y", "x"), "metadata": meta,
+    }, "points")
+    return [tracks, pts]
+
+
+def _id_colours(ids: np.ndarray) -> np.ndarray:
+    """A stable colour per track ID (golden-ratio hues); grey for untracked neurons."""
+    import colorsys
+
+    out = np.empty((len(ids), 4))
+    for k, i in enumerate(ids):
+        if i < 0:
+            out[k] = (0.6, 0.6, 0.6, 0.6)
+        else:
+            out[k] = (*colorsys.hsv_to_rgb((i * 0.618034) % 1.0, 0.75, 1.0), 1.0)
+    return out
+
+
+class TrackWidget(QWidget):
+    """Track neurons through a sequence; see the module docstring."""
+
+    def __init__(self, napari_viewer: "napari.viewer.Viewer", parent: QWidget | None = None):
+        super().__init__(parent)
+        self.viewer = getattr(napari_viewer, "__wrapped__", napari_viewer)
+        self.identifier = None  # None: the shipped model
+        self.last_error: str | None = None
+        self.result = None
+        self.sequence = None
+        self.layers: list = []
+        self._worker = None
+        self._busy = False
+        self._signals = _Signals()
+        self._signals.progress.connect(self._on_progress)
+        self._build_ui()
+
+    # ------------------------------------------------------------------------------------------
+    def _build_ui(self) -> None:
+        layout = QVBoxLayout(self)
+        form = QFormLayout()
+        self.sequence_edit = QLineEdit()
+        self.sequence_edit.setPlaceholderText("CSV with a t column, or a folder of CSVs")
+        form.addRow("Sequence", self._with_browse(self.sequence_edit, self._browse_sequence))
+        self.reference_edit = QLineEdit()
+        self.reference_edit.setPlaceholderText("optional; default: the first time point")
+        form.addRow("Reference", self._with_browse(self.reference_edit, self._browse_reference))
+        self.colour_check = QCheckBox("use colour when present")
+        self.colour_check.setChecked(True)
+        form.addRow("", self.colour_check)
+        layout.addLayout(form)
+        self.run_button = QPushButton("Track")
+        self.run_button.clicked.connect(lambda: self.run(wait=False))
+        layout.addWidget(self.run_button)
+        self.progress_bar = QProgressBar()
+        self.progress_bar.setRange(0, 100)
+        self.progress_bar.setValue(0)
+        layout.addWidget(self.progress_bar)
+        self.status = QLabel("")
+        self.status.setWordWrap(True)
+        layout.addWidget(self.status)
+        layout.addStretch(1)
+
+    def _with_browse(self, edit: QLineEdit, browse) -> QWidget:
+        box = QWidget()
+        row = QHBoxLayout(box)
+        row.setContentsMargins(0, 0, 0, 0)
+        row.addWidget(edit)
+        button = QPushButton("…")
+        button.setMaximumWidth(30)
+        button.clicked.connect(browse)
+        row.addWidget(button)
+        return box
+
+    def _browse_sequence(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Sequence (CSV with a t column)", "", "CSV (*.csv)")
+        if path:
+            self.set_sequence(path)
+
+    def _browse_reference(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Reference volume", "", "CSV (*.csv)")
+        if path:
+            self.set_reference(path)
+
+    # ------------------------------------------------------------------------------------------
+    # Scripting interface
+    def set_sequence(self, path) -> None:
+        self.sequence_edit.setText(str(path))
+
+    def set_reference(self, path) -> None:
+        self.reference_edit.setText("" if path is None else str(path))
+
+    @property
+    def busy(self) -> bool:
+        return self._busy
+
+    def run(self, wait: bool = True):
+        """Read the inputs, track in a worker thread, then add the layers. With ``wait`` (the
+        default, for scripts) returns the two layers when done (None after an error)."""
+        from napari.qt.threading import thread_worker
+
+        if self._busy:
+            self._error("a tracking job is still running")
+            return None
+        self.last_error = None
+        sequence_path = self.sequence_edit.text().strip()
+        reference_path = self.reference_edit.text().strip()
+        use_colour = self.colour_check.isChecked()
+        identifier = self.identifier
+        signals = self._signals
+
+        @thread_worker(start_thread=False, ignore_errors=True)
+        def work():
+            from ..table import read_table
+            from ..track import TrackSettings, read_sequence, track
+
+            if not sequence_path:
+                raise FdlcError("choose a sequence first (a CSV with a t column, or a folder of CSVs)")
+            sequence = read_sequence([sequence_path])
+            references = [read_table(reference_path)] if reference_path else None
+            ident = identifier
+            if ident is None:
+                from ..identify import default_identifier
+
+                ident = default_identifier()
+            result = track(sequence, references, ident, TrackSettings(use_colour=use_colour),
+                           progress=lambda done, total: signals.progress.emit(done, total))
+            return sequence, result
+
+        worker = work()
+        self._worker = worker
+        self._set_busy(True)
+        worker.returned.connect(lambda out: self._show(*out, Path(sequence_path).stem or "sequence"))
+        worker.errored.connect(self._on_error)
+        worker.finished.connect(lambda: self._set_busy(False))
+        worker.start()
+        if wait:
+            self.wait()
+            return None if self.last_error else self.layers
+        return worker
+
+    def wait(self) -> None:
+        """Process GUI events until the running job is done."""
+        worker = self._worker
+        if worker is None or not self._busy:
+            return
+        loop = QEventLoop()
+        worker.finished.connect(loop.quit)
+        if self._busy:
+            loop.exec()
+
+    # ------------------------------------------------------------------------------------------
+    def _show(self, sequence, result, name: str) -> None:
+        self.sequence, self.result = sequence, result
+        for layer in self.layers:
+            if layer in self.viewer.layers:
+                self.viewer.layers.remove(layer)
+        self.layers = []
+        for data, kwargs, kind in track_layers(result, sequence, name):
+            self.layers.append(getattr(self.viewer, f"add_{kind}")(data, **kwargs))
+        # Neurons are spread in z: show the whole volume at the current time point (in a 2D slice
+        # only the neurons of one z plane would show), starting at the first time point.
+        self.viewer.dims.ndisplay = 3
+        self.viewer.dims.set_current_step(0, 0)
+        tracked = np.mean([(t >= 0).mean() for t in result.track_id])
+        self.status.setText(f"{len(sequence)} time points, {len(result.names)} tracks; "
+                            f"{100 * tracked:.0f} % of neurons tracked")
+
+    def _on_error(self, exc: Exception) -> None:
+        if isinstance(exc, FdlcError):
+            self._error(str(exc))
+        else:
+            self._error(f"unexpected error ({type(exc).__name__}: {exc})")
+
+    def _error(self, message: str) -> None:
+        self.last_error = message
+        self.status.setText(message)
+        try:
+            from napari.utils.notifications import show_error
+
+            show_error(message)
+        except Exception:  # pragma: no cover - notification machinery unavailable
+            pass
+
+    def _set_busy(self, busy: bool) -> None:
+        self._busy = busy
+        self.run_button.setEnabled(not busy)
+        if busy:
+            self.progress_bar.setValue(0)
+            self.status.setText("tracking…")
+        elif self.last_error is None:
+            self.progress_bar.setValue(100)
+        if not busy:
+            self._worker = None
+
+    def _on_progress(self, done: int, total: int) -> None:
+        self.progress_bar.setValue(int(round(100 * done / max(total, 1))))
+        self.status.setText(f"tracking… {done}/{total} volumes")

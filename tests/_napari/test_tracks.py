@@ -1,0 +1,104 @@
+"""The Track widget: a table sequence in, a Tracks layer and labelled Points at the current time out."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from napari_fdlc.table import write_table
+
+
+@pytest.fixture
+def sequence_csv(tmp_path):
+    from napari_fdlc.reference import generate_worm
+    from napari_fdlc.track import SequenceParams, simulate_sequence
+
+    worm = generate_worm(seed=4)
+    params = SequenceParams(frames=5, bend_curvature=0.002, roll=0.05, xy_rotation=0.2, drift_um=3.0,
+                            drop_fraction=(0.0, 0.05), max_spurious=2, jitter_um=0.2)
+    volumes, origins = simulate_sequence(worm, 0, params)
+    frames = []
+    for t, v in enumerate(volumes):
+        df = v.to_dataframe().drop(columns=["label"])
+        df.insert(0, "t", 10 * t)  # time values need not be 0..T-1
+        frames.append(df)
+    path = tmp_path / "recording.csv"
+    write_table(pd.concat(frames, ignore_index=True), path)
+    # a labelled reference: the first volume with the names of its source neurons
+    first = volumes[0]
+    labels = np.array([worm.labels[o] if o >= 0 else "" for o in origins[0]], dtype=object)
+    ref = tmp_path / "reference.csv"
+    write_table(type(first)(first.xyz, first.colours, labels), ref)
+    return path, ref, volumes
+
+
+@pytest.fixture
+def track_widget(make_napari_viewer, identifier):
+    from napari_fdlc._napari.tracks import TrackWidget
+
+    viewer = make_napari_viewer()
+    widget = TrackWidget(viewer)
+    viewer.window.add_dock_widget(widget, name="Track")
+    widget.identifier = identifier
+    return viewer, widget
+
+
+def test_tracks_and_labelled_points_at_the_current_time(track_widget, sequence_csv):
+    viewer, widget = track_widget
+    path, ref, volumes = sequence_csv
+    widget.set_sequence(path)
+    widget.set_reference(ref)
+    layers = widget.run()
+    assert widget.last_error is None, widget.last_error
+    tracks, points = layers
+    assert type(tracks).__name__ == "Tracks" and type(points).__name__ == "Points"
+    assert tracks in viewer.layers and points in viewer.layers
+    # Tracks: [track_id, t, z, y, x]; one row per tracked neuron per time point
+    assert tracks.data.shape[1] == 5
+    assert set(np.unique(tracks.data[:, 1]).astype(int)) == set(range(len(volumes)))
+    # every neuron of every time point is a point; positions are the input's, z y x
+    assert len(points.data) == sum(len(v) for v in volumes)
+    assert np.allclose(points.data[: len(volumes[0]), 1:], volumes[0].xyz[:, ::-1])
+    feats = points.features
+    assert {"t", "track_id", "track_conf", "name"} <= set(feats.columns)
+    assert sorted(feats["t"].unique()) == [0, 10, 20, 30, 40]
+    # the labelled reference names the tracks; the reference volume is itself named right
+    first = feats[feats["t"] == 0]
+    ref_labels = pd.read_csv(ref, keep_default_na=False)["label"].to_numpy()
+    assert (first["name"].to_numpy() == ref_labels).mean() >= 0.95
+    assert (first["name"] != "").sum() > 50
+    # only the current time point is shown (the whole volume: 3D display), and moving the time
+    # slider changes it
+    assert viewer.dims.ndisplay == 3
+    viewer.dims.set_current_step(0, 0)
+    shown = np.asarray(points._view_indices, dtype=int)
+    assert len(shown) == len(volumes[0])
+    viewer.dims.set_current_step(0, 3)
+    shown = np.asarray(points._view_indices, dtype=int)
+    assert len(shown) == len(volumes[3]) and (points.data[shown, 0] == 3).all()
+    assert widget.progress_bar.value() == 100
+    assert "5 time points" in widget.status.text()
+
+
+def test_running_again_replaces_the_layers(track_widget, sequence_csv):
+    viewer, widget = track_widget
+    path, _, _ = sequence_csv
+    widget.set_sequence(path)
+    widget.run()
+    widget.run()
+    assert widget.last_error is None
+    assert [layer.name for layer in viewer.layers] == ["recording tracks", "recording neurons"]
+    assert "name" in widget.layers[1].features  # unnamed reference: empty names, ID as text
+    assert (widget.layers[1].features["name"] == "").all()
+
+
+def test_bad_sequence_is_one_line_and_adds_nothing(track_widget, tmp_path, worm):
+    viewer, widget = track_widget
+    path = tmp_path / "no_time.csv"
+    write_table(worm, path)
+    widget.set_sequence(path)
+    assert widget.run() is None
+    assert "no 't' column" in widget.last_error and "\n" not in widget.last_error
+    assert len(viewer.layers) == 0
+    assert widget.run_button.isEnabled()
