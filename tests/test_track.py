@@ -78,9 +78,16 @@ def test_shuffled_exact_copies_are_tracked_exactly(identifier, worm):
 
 def test_batching_and_placement_modes_agree_on_gentle_motion(identifier, gentle):
     volumes, origins = gentle
-    for settings in (TrackSettings(use_colour=False, chunk=1), TrackSettings(use_colour=False, chunk=3, refine_steps=1),
-                     TrackSettings(use_colour=False, placement="model", chunk=1)):
-        assert tracking_accuracy(track(volumes, identifier=identifier, settings=settings), origins, origins[0])["accuracy"] >= 0.93
+    scores = []
+    for settings in (TrackSettings(use_colour=False), TrackSettings(use_colour=False, chunk=1),
+                     TrackSettings(use_colour=False, chunk=3, refine_steps=1)):
+        result = track(volumes, identifier=identifier, settings=settings)
+        scores.append(tracking_accuracy(result, origins, origins[0])["accuracy"])
+    assert min(scores) >= 0.95
+    assert scores[0] == scores[1]  # the geometric placement does not depend on the chunking
+    # the model alone (no geometric pre-placement, no position likelihood) tracks too
+    alone = TrackSettings(use_colour=False, placement="model", chunk=1, position_sigma_um=0)
+    assert tracking_accuracy(track(volumes, identifier=identifier, settings=alone), origins, origins[0])["accuracy"] >= 0.9
 
 
 def test_several_references_share_track_ids(identifier, gentle):

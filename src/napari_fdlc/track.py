@@ -51,7 +51,8 @@ class TrackSettings:
     search: str = "propagate"  # "propagate" (orientation from the previous volume) or "full"
     refine_steps: int = 0  # model passes per volume after the first, each re-placed by its own warp
     chunk: int = 16  # volumes that go through the model as one batch
-    research_ratio: float = 0.5  # full search again when a volume's match rate < this × the first volume's
+    lost_fraction: float = 0.5  # placement "geometry": full search again when fewer neurons than this pair up
+    research_ratio: float = 0.5  # placement "model": full search again when the match rate < this × the first volume's
     use_colour: bool = True
     combine: str = "best"  # several references: "best" (the one the model matches best) or "mean"
     no_match_weight: float = 0.2  # see match.assign
@@ -59,7 +60,9 @@ class TrackSettings:
     warp_smoothness: float = 0.3  # ridge on the non-rigid part
     warp_min_prob: float = 0.1  # matches less likely than this do not shape the warp
     placement: str = "geometry"  # "geometry": cheap sequential pre-placement, then one model batch per chunk; "model"
-    gate_um: float = 4.0  # geometric pre-placement: farther pairs stay unpaired
+    gate_um: float = 6.0  # geometric pre-placement: farther pairs stay unpaired
+    geometry_iterations: int = 3  # pair-and-fit rounds of the geometric pre-placement
+    position_sigma_um: float = 1.0  # same-worm position likelihood fused with the model (0: model alone)
 
     def check(self) -> None:
         if self.search not in ("propagate", "full"):
@@ -234,15 +237,18 @@ def _match_rate(log_p: np.ndarray) -> float:
     return float(np.exp(np.log1p(-np.exp(np.minimum(log_p[:, -1], -1e-6))).mean()))
 
 
-def _finish(identifier, ref: _Reference, volume: NeuronTable, lp: np.ndarray, s: TrackSettings, fit: bool = True) -> dict:
+def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: TrackSettings, fit: bool = True) -> dict:
     """Calibrated, colour-fused log p, its one-to-one assignment onto the reference's neurons,
     and (``fit``) the warp that carries this volume onto the reference, fitted on the assignment."""
+    lp, placed = out
     rate = _match_rate(lp)
     calibrate = getattr(identifier, "_calibrate", None)
     if calibrate is not None:
         lp = calibrate(lp)
     if s.use_colour:
         lp = identifier._fuse_colour(lp, ref.table, volume)
+    if s.position_sigma_um > 0:
+        lp = _fuse_position(lp, placed, ref.xyz, s.position_sigma_um)
     p = np.exp(lp[:, :-1])
     choice = assign(p, None, s.no_match_weight)
     matched = choice >= 0
@@ -253,97 +259,134 @@ def _finish(identifier, ref: _Reference, volume: NeuronTable, lp: np.ndarray, s:
     return {"log_p": lp, "choice": choice, "warp": warp, "rate": rate}
 
 
+def _fuse_position(log_p: np.ndarray, placed: np.ndarray, ref_xyz: np.ndarray, sigma: float) -> np.ndarray:
+    """Within one worm a neuron stays where the warp puts it, up to segmentation jitter: add the
+    log likelihood ratio of a Gaussian displacement (width ``sigma`` µm) against a partner
+    anywhere in the worm, to the real columns ("no match" keeps ratio 1), and renormalise.
+    The model was trained across worms, where partners lie much further apart."""
+    d2 = ((placed[:, None, :] - ref_xyz[None, :, :]) ** 2).sum(-1)
+    volume = float(np.prod(np.ptp(ref_xyz, axis=0) + 2 * sigma))
+    llr = -d2 / (2 * sigma**2) - 1.5 * np.log(2 * np.pi * sigma**2) + np.log(volume)
+    fused = log_p.copy()
+    fused[:, :-1] += llr
+    fused -= fused.max(axis=1, keepdims=True)
+    return fused - np.log(np.exp(fused).sum(axis=1, keepdims=True))
+
+
 def _model_colours(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings):
     """Colour inputs for a model trained with colour (see Identifier._model_colours)."""
     pick = getattr(identifier, "_model_colours", None)
     return pick(ref.table, volumes, s.use_colour) if pick is not None else (None, None)
 
 
-def _full_search(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings) -> list[np.ndarray]:
-    """Log p of each volume in the best of the 8 orientations (no refinement)."""
+def _full_search(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings) -> list[tuple]:
+    """(log p, placement) of each volume in the best of the 8 orientations (no refinement)."""
     orientations = ORIENTATIONS if identifier.settings.chirality_search else ORIENTATIONS[:4]
     starts = [np.einsum("kij,nj->kni", orientations, canonical_frame(v.xyz)[0]) for v in volumes]
     tc, sc = _model_colours(identifier, ref, volumes, s)
     extra = {} if tc is None else {"template_colour": tc, "test_colours": sc}
-    return [f["log_p"] for f in identifier._align(ref.xyz, starts, 0, **extra)]
+    return [(f["log_p"], f["moved"]) for f in identifier._align(ref.xyz, starts, 0, **extra)]
 
 
-def _placed(identifier, ref: _Reference, volumes: list[NeuronTable], warps: list[Warp], s: TrackSettings) -> list[np.ndarray]:
-    """Log p of each volume placed in the reference frame by its warp, as one batch."""
+def _placed(identifier, ref: _Reference, volumes: list[NeuronTable], warps: list[Warp], s: TrackSettings) -> list[tuple]:
+    """(log p, placement) of each volume placed in the reference frame by its warp, as one batch."""
     tc, sc = _model_colours(identifier, ref, volumes, s)
     extra = () if tc is None else (tc, sc)
-    return identifier._forward_many(ref.xyz, [w(v.xyz) for v, w in zip(volumes, warps)], *extra)
+    placed = [w(v.xyz) for v, w in zip(volumes, warps)]
+    return list(zip(identifier._forward_many(ref.xyz, placed, *extra), placed))
 
 
-def _geometric_step(ref: _Reference, volume: NeuronTable, warp: Warp, s: TrackSettings) -> Warp:
+def _geometric_step(ref: _Reference, volume: NeuronTable, warp: Warp, s: TrackSettings, pairs: bool = False):
     """Cheap placement of the next volume (no model): place it with the previous warp, pair it
     with the reference by the one-to-one assignment on squared distance (pairs further apart
-    than ``gate_um`` stay unpaired), and fit its own warp on those pairs."""
+    than ``gate_um`` stay unpaired), and fit its own warp on those pairs. With ``pairs``,
+    returns (warp, partner index per neuron or -1)."""
     from scipy.optimize import linear_sum_assignment
 
-    placed = warp(volume.xyz)
-    d2 = ((placed[:, None, :] - ref.xyz[None, :, :]) ** 2).sum(-1)
-    n, m = d2.shape
-    gate = s.gate_um**2
-    cost = np.full((n, m + n), 1e9)
-    cost[:, :m] = np.minimum(d2, 1e8)
-    cost[np.arange(n), m + np.arange(n)] = gate
-    rows, cols = linear_sum_assignment(cost)
-    paired = cols < m
-    if paired.sum() < 4:
-        return warp
-    weights = np.zeros(n)
-    weights[rows[paired]] = 1.0
-    target = np.zeros((n, 3))
-    target[rows[paired]] = ref.xyz[cols[paired]]
-    return fit_warp(volume.xyz, target, weights, s.warp_sigma_um, s.warp_smoothness)
+    n, m = len(volume), len(ref.xyz)
+    choice = np.full(n, UNTRACKED)
+    for _ in range(max(1, s.geometry_iterations)):  # ICP-like: pair, fit, pair again
+        placed = warp(volume.xyz)
+        d2 = ((placed[:, None, :] - ref.xyz[None, :, :]) ** 2).sum(-1)
+        cost = np.full((n, m + n), 1e9)
+        cost[:, :m] = np.minimum(d2, 1e8)
+        cost[np.arange(n), m + np.arange(n)] = s.gate_um**2
+        rows, cols = linear_sum_assignment(cost)
+        paired = cols < m
+        choice = np.full(n, UNTRACKED)
+        choice[rows[paired]] = cols[paired]
+        if paired.sum() < 4:
+            break
+        weights = np.zeros(n)
+        weights[rows[paired]] = 1.0
+        target = np.zeros((n, 3))
+        target[rows[paired]] = ref.xyz[cols[paired]]
+        warp = fit_warp(volume.xyz, target, weights, s.warp_sigma_um, s.warp_smoothness)
+    return (warp, choice) if pairs else warp
 
 
 def _match_chunk(identifier, ref: _Reference, chunk: list[NeuronTable], s: TrackSettings) -> list[dict]:
     """Match a chunk of consecutive volumes to one reference; updates the reference's warp.
 
-    Each volume is placed with the warp of the last volume before the chunk (or, for the very
-    first volume, and with ``search="full"``, by the full orientation search), then refined
-    ``refine_steps`` times with its own warp, fitted on its own assignment."""
+    The very first volume (every volume with ``search="full"``) gets the full orientation
+    search. With ``placement="geometry"`` each later volume is placed by the geometric chain
+    (:func:`_geometric_step` from the volume before), which does not depend on how volumes are
+    chunked; with ``placement="model"`` by the warp fitted on the model's answer for the last
+    volume of the chunk before. Then ``refine_steps`` re-placements by each volume's own warp,
+    fitted on its own answer."""
     found: list[dict | None] = [None] * len(chunk)
     searched = [False] * len(chunk)
+    last = len(chunk) - 1
     if s.search == "full" or ref.warp is None:
         first = list(range(len(chunk))) if s.search == "full" else [0]
-        for i, lp in zip(first, _full_search(identifier, ref, [chunk[i] for i in first], s)):
-            found[i] = _finish(identifier, ref, chunk[i], lp, s)
+        for i, out in zip(first, _full_search(identifier, ref, [chunk[i] for i in first], s)):
+            found[i] = _finish(identifier, ref, chunk[i], out, s)
             searched[i] = True
         if ref.first_rate is None:
             ref.first_rate = found[0]["rate"]
         if ref.warp is None:
             ref.warp = found[0]["warp"]
     rest = [i for i in range(len(chunk)) if found[i] is None]
+    chain = ref.warp
     if rest:
         if s.placement == "geometry":
-            warps, warp = [], ref.warp
+            warps: list[Warp] = []
             for i in rest:
-                warp = _geometric_step(ref, chunk[i], warp, s)
+                warp, choice = _geometric_step(ref, chunk[i], chain, s, pairs=True)
+                paired = (choice >= 0).mean()
+                if paired < s.lost_fraction:
+                    # Lost (a jump): search this volume in all orientations, restart from there.
+                    out = _full_search(identifier, ref, [chunk[i]], s)[0]
+                    again, choice2 = _geometric_step(ref, chunk[i], _finish(identifier, ref, chunk[i], out, s)["warp"], s, pairs=True)
+                    if (choice2 >= 0).mean() > paired:
+                        warp, searched[i] = again, True
+                chain = warp
                 warps.append(warp)
         else:
             warps = [ref.warp] * len(rest)
-        lps = _placed(identifier, ref, [chunk[i] for i in rest], warps, s)
-        last = len(chunk) - 1
-        # A warp of its own is needed only to re-place a volume (refine steps) or to start the
-        # next chunk from (the last volume).
-        for i, lp in zip(rest, lps):
-            found[i] = _finish(identifier, ref, chunk[i], lp, s, fit=i == last or s.refine_steps > 0)
-        lost = [i for i in rest if found[i]["rate"] < s.research_ratio * ref.first_rate]
-        for i, lp in zip(lost, _full_search(identifier, ref, [chunk[i] for i in lost], s)):
-            again = _finish(identifier, ref, chunk[i], lp, s, fit=i == last or s.refine_steps > 0)
-            if again["rate"] > found[i]["rate"]:
-                found[i], searched[i] = again, True
+        outs = _placed(identifier, ref, [chunk[i] for i in rest], warps, s)
+        # A warp of the volume's own is needed only to re-place it (refine steps) or, with
+        # placement="model", to start the next chunk from (the last volume).
+        own = s.refine_steps > 0 or s.placement == "model"
+        for i, out in zip(rest, outs):
+            found[i] = _finish(identifier, ref, chunk[i], out, s, fit=own and (i == last or s.refine_steps > 0))
+        if s.placement == "model":
+            lost = [i for i in rest if found[i]["rate"] < s.research_ratio * ref.first_rate]
+            for i, out in zip(lost, _full_search(identifier, ref, [chunk[i] for i in lost], s)):
+                again = _finish(identifier, ref, chunk[i], out, s)
+                if again["rate"] > found[i]["rate"]:
+                    found[i], searched[i] = again, True
     for step in range(s.refine_steps):
-        lps = _placed(identifier, ref, chunk, [f["warp"] for f in found], s)
+        outs = _placed(identifier, ref, chunk, [f["warp"] for f in found], s)
         more = step < s.refine_steps - 1
-        found = [_finish(identifier, ref, v, lp, s, fit=more or k == len(chunk) - 1)
-                 for k, (v, lp) in enumerate(zip(chunk, lps))]
+        found = [_finish(identifier, ref, v, out, s, fit=more or k == last)
+                 for k, (v, out) in enumerate(zip(chunk, outs))]
     for f, flag in zip(found, searched):
         f["searched"] = flag
-    ref.warp = found[-1]["warp"]
+    if s.placement == "model" or not rest:
+        ref.warp = found[last]["warp"]
+    else:
+        ref.warp = chain
     return found
 
 
@@ -396,13 +439,15 @@ def track(
     seq = volumes if isinstance(volumes, Sequence) else Sequence(list(volumes), list(range(len(volumes))))
     s = settings or TrackSettings()
     s.check()
-    if method not in ("fdlc", "cpd"):
-        raise FdlcError(f"unknown method '{method}' (use fdlc or cpd)")
+    if method not in ("fdlc", "cpd", "geometry"):
+        raise FdlcError(f"unknown method '{method}' (use fdlc, cpd or geometry)")
     if len(seq) == 0:
         raise FdlcError("the sequence has no volume")
     tables = list(references) if references else [seq.volumes[0]]
     if method == "cpd":
         return _track_cpd(seq, tables, s, progress)
+    if method == "geometry":
+        return _track_geometry(seq, tables, s, progress)
     if identifier is None:
         from .identify import default_identifier
 
@@ -473,6 +518,31 @@ def _track_cpd(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, progr
         tid, conf = _assign_ids(probs[:, :-1], s.no_match_weight)
         result.track_id.append(tid)
         result.confidence.append(conf)
+        result.info.append({"reference": 0})
+        if progress is not None:
+            progress(k + 1, len(seq))
+    return result
+
+
+def _track_geometry(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, progress) -> TrackResult:
+    """Ablation without any model: the first volume is put on the reference by the non-learned
+    floor (canonical frame, best of the 4 flips, assignment on distance); every later volume by
+    the propagated warp and the one-to-one assignment on distance alone (the pre-placement of
+    ``placement="geometry"``), whose pairs are the answer."""
+    from .baselines import floor_match
+
+    ref = _Reference(tables[0], np.arange(len(tables[0])))
+    result = TrackResult([], [], list(ref.table.labels), [], list(seq.times), list(seq.sources))
+    warp = None
+    for k, vol in enumerate(seq.volumes):
+        if warp is None:
+            probs = floor_match(ref.table, vol)[:, :-1]
+            choice = np.where(probs.max(1) > 0, probs.argmax(1), UNTRACKED)
+            ok = choice >= 0
+            warp = fit_warp(vol.xyz, ref.xyz[np.maximum(choice, 0)], ok.astype(float), s.warp_sigma_um, s.warp_smoothness)
+        warp, choice = _geometric_step(ref, vol, warp, s, pairs=True)
+        result.track_id.append(choice)
+        result.confidence.append((choice >= 0).astype(float))
         result.info.append({"reference": 0})
         if progress is not None:
             progress(k + 1, len(seq))
