@@ -346,7 +346,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
 
 def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
     """Fit the inference settings that are not learned by gradient descent, on validation
-    pairs of the *training* labs: the prior against mirrored recordings (top-1, position only),
+    pairs of the *training* labs: the prior against mirrored recordings and the weight of
+    leaving a neuron unnamed (top-1, position only),
     the colour fusion weight (top-1 with colour), then the temperature that minimises the
     expected calibration error of ``auto_conf``."""
     from .evaluate import Scores
@@ -367,6 +368,14 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
         if best is None or top1 > best[1]:
             best = (penalty, top1)
     settings.mirror_penalty = best[0]
+    best = None
+    for weight in (0.05, 0.2, 0.5):
+        settings.no_match_weight = weight
+        top1 = run(False).summary()["top1"]
+        log(f"calibrate: no_match_weight {weight}: top-1 {top1:.3f}")
+        if best is None or top1 > best[1]:
+            best = (weight, top1)
+    settings.no_match_weight = best[0]
     best = None
     for weight in (0.0, 0.25, 0.5, 1.0):
         settings.colour_weight = weight
