@@ -91,6 +91,7 @@ def _train_parser(sub) -> None:
     p.add_argument("--eval-every", type=int, default=None, help="validate every N steps")
     p.add_argument("--val-pairs-per-lab", type=int, default=None)
     p.add_argument("--no-calibrate", action="store_true", help="skip fitting colour weight and temperature")
+    p.add_argument("--calibrate-only", action="store_true", help="only calibrate the checkpoint at --out")
     p.add_argument("--out", default="runs/model", help="checkpoint path without suffix")
     p.set_defaults(run=_run_train)
 
@@ -115,6 +116,11 @@ def _run_train(args) -> int:
         cfg.steps = args.steps
     if args.batch_size:
         cfg.batch_size = args.batch_size
+    if args.calibrate_only:
+        from .train import calibrate_checkpoint
+
+        calibrate_checkpoint(cfg)
+        return 0
     result = train(cfg)
     print(f"best mean validation top-1 {result['best_mean_top1']:.3f} after {result['minutes']:.1f} min; weights at {args.out}.safetensors")
     return 0

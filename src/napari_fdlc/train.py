@@ -330,18 +330,30 @@ def train(cfg: TrainConfig, log=print) -> dict:
             break
     minutes = (time.time() - start) / 60
     if cfg.calibrate and best >= 0:
-        from .identify import Identifier
-
-        tuned = Identifier.load(out, device)
-        own_labs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
-        settings = calibrate(tuned, own_labs, log)
-        meta = json.loads(out.with_suffix(".json").read_text())
-        meta.update(inference=settings, train_minutes=round(minutes, 1),
-                    calibration_minutes=round((time.time() - start) / 60 - minutes, 1),
-                    device=device, torch_threads=torch.get_num_threads())
-        out.with_suffix(".json").write_text(json.dumps(meta, indent=2))
-        log(f"calibrated inference settings: {settings}")
+        calibrate_checkpoint(cfg, val_pairs, {"train_minutes": round(minutes, 1), "device": device,
+                                              "torch_threads": torch.get_num_threads()}, log)
     return {"best_mean_top1": best, "history": history, "minutes": minutes}
+
+
+def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, extra: dict | None = None, log=print) -> dict:
+    """Calibrate the checkpoint at ``cfg.out`` on the validation pairs of its training labs
+    (the same pairs training validated on) and write the settings into its JSON."""
+    from .identify import Identifier
+
+    start = time.time()
+    if val_pairs is None:
+        rng = np.random.default_rng(cfg.seed)
+        _, val_worms = split_worms(load_corpus(cfg.corpus), cfg, rng)
+        val_pairs = validation_pairs(val_worms, cfg.val_pairs_per_lab, np.random.default_rng(cfg.seed + 1))
+    out = Path(cfg.out)
+    own_labs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
+    settings = calibrate(Identifier.load(out, cfg.device), own_labs, log)
+    meta = json.loads(out.with_suffix(".json").read_text())
+    meta.update(extra or {})
+    meta.update(inference=settings, calibration_minutes=round((time.time() - start) / 60, 1))
+    out.with_suffix(".json").write_text(json.dumps(meta, indent=2))
+    log(f"calibrated inference settings: {settings}")
+    return settings
 
 
 def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
