@@ -34,7 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--refine-steps", type=int, default=0, help="extra model passes per volume (default 0)")
     parser.add_argument("--chunk", type=int, default=16, help="volumes per model batch (default 16)")
     parser.add_argument("--no-color", "--no-colour", dest="no_colour", action="store_true", help="positions only")
-    parser.add_argument("--method", choices=("fdlc", "cpd"), default="fdlc", help="fdlc (default) or cpd (classical baseline)")
+    parser.add_argument("--method", choices=("fdlc", "cpd", "geometry"), default="fdlc",
+                        help="fdlc (default), cpd (classical baseline) or geometry (the warp chain alone, no model)")
     parser.add_argument("--weights", help="model weights (path without suffix); default: the shipped model")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads for the model (default: torch's)")
     parser.add_argument("--out", required=True, help="output CSV")
@@ -60,8 +61,8 @@ def run(args: argparse.Namespace) -> int:
     references = [read_table(r) for r in args.reference]
     for raw in args.reference_t:
         references.append(_volume_at(seq, raw))
-    if args.method == "cpd" and len(references) > 1:
-        raise FdlcError("--method cpd takes one reference")
+    if args.method != "fdlc" and len(references) > 1:
+        raise FdlcError(f"--method {args.method} takes one reference")
     identifier = None
     if args.method == "fdlc":
         from .identify import Identifier, default_identifier

@@ -8,20 +8,24 @@ reference is labelled, each track also carries the reference neuron's name.
 
 Speed comes from the worm moving smoothly. Consecutive volumes share their orientation and
 nearly their pose, so only the first volume gets the full search (8 orientations, see
-:mod:`napari_fdlc.geometry`); every later volume is *placed* in the reference's frame by the warp
-found for the volume before it (an affine map plus a smooth non-rigid displacement, fitted on that
-volume's matches, see :class:`Warp`). With ``placement="geometry"`` (default) the placement of
-each volume is refined without the model (one-to-one assignment on distance, then its own warp;
-about a millisecond), so a whole chunk of ``chunk`` volumes then goes through the model as one
-batch; with ``placement="model"`` each chunk starts from the model's answer for the volume
-before it. ``refine_steps`` more model passes re-place each volume with the warp fitted on its
-own answer. A volume that the model is much less willing to match than the first volume (a
-jump, a lost placement) is searched again in all 8 orientations, so one bad volume does not
-derail the rest of the sequence.
+:mod:`napari_fdlc.geometry`); every later volume is *placed* in the reference's frame by a
+:class:`Warp` (an affine map plus a smooth non-rigid displacement) carried over from the volume
+before it. With ``placement="geometry"`` (default) the warp is carried by a cheap geometric chain
+(no model; about a millisecond per volume): place with the previous warp, pair with the
+reference by the one-to-one assignment on distance, refit, a few rounds (ICP-like). The chain
+does not depend on the model's answers, so the model then sees a whole chunk of ``chunk``
+volumes as one batch, and the result does not depend on the chunk size. A volume where fewer
+than ``lost_fraction`` of the neurons pair up (a jump) is searched again in all 8 orientations
+and the chain restarts from it. The model's log-probabilities (plus colour) are fused with a
+same-worm position likelihood (``position_sigma_um``: within one recording a neuron stays where
+the warp puts it, up to segmentation jitter; the model itself was trained across worms) and the
+one-to-one assignment gives the track IDs. ``refine_steps`` more model passes re-place each
+volume by the warp fitted on its own answer. With ``placement="model"`` the warp comes from the
+model's answer for the last volume of the chunk before instead (no geometric chain).
 
 ``search="full"`` runs the full search (what ``fdlc label`` does) on every volume instead.
-``method="cpd"`` tracks with the classical CPD baseline (each volume to the reference), for
-comparison.
+For comparison, ``method="cpd"`` tracks with the classical CPD baseline (each volume to the
+reference) and ``method="geometry"`` with the geometric chain alone (no model: an ablation).
 
 :func:`simulate_sequence` makes synthetic sequences with known tracks: the worm's pose (bend,
 roll, rotation and position in XY, scale) changes smoothly over time, and each volume gets its own
@@ -196,9 +200,13 @@ class Warp:
         return out
 
 
+def _sqdist(x: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(N, M) squared distances; for a few hundred points this beats broadcasting by far."""
+    return np.maximum((x * x).sum(1)[:, None] + (c * c).sum(1)[None, :] - 2 * x @ c.T, 0.0)
+
+
 def _gauss(x: np.ndarray, c: np.ndarray, sigma: float) -> np.ndarray:
-    d2 = (x**2).sum(1)[:, None] + (c**2).sum(1)[None, :] - 2 * x @ c.T
-    return np.exp(-np.maximum(d2, 0.0) / (2 * sigma**2))
+    return np.exp(_sqdist(x, c) / (-2 * sigma**2))
 
 
 def fit_warp(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, sigma: float = 12.0, smoothness: float = 1.0) -> Warp:
@@ -264,7 +272,7 @@ def _fuse_position(log_p: np.ndarray, placed: np.ndarray, ref_xyz: np.ndarray, s
     log likelihood ratio of a Gaussian displacement (width ``sigma`` µm) against a partner
     anywhere in the worm, to the real columns ("no match" keeps ratio 1), and renormalise.
     The model was trained across worms, where partners lie much further apart."""
-    d2 = ((placed[:, None, :] - ref_xyz[None, :, :]) ** 2).sum(-1)
+    d2 = _sqdist(placed, ref_xyz)
     volume = float(np.prod(np.ptp(ref_xyz, axis=0) + 2 * sigma))
     llr = -d2 / (2 * sigma**2) - 1.5 * np.log(2 * np.pi * sigma**2) + np.log(volume)
     fused = log_p.copy()
@@ -307,16 +315,17 @@ def _geometric_step(ref: _Reference, volume: NeuronTable, warp: Warp, s: TrackSe
     choice = np.full(n, UNTRACKED)
     for _ in range(max(1, s.geometry_iterations)):  # ICP-like: pair, fit, pair again
         placed = warp(volume.xyz)
-        d2 = ((placed[:, None, :] - ref.xyz[None, :, :]) ** 2).sum(-1)
+        d2 = _sqdist(placed, ref.xyz)
         cost = np.full((n, m + n), 1e9)
         cost[:, :m] = np.minimum(d2, 1e8)
         cost[np.arange(n), m + np.arange(n)] = s.gate_um**2
         rows, cols = linear_sum_assignment(cost)
         paired = cols < m
+        previous = choice
         choice = np.full(n, UNTRACKED)
         choice[rows[paired]] = cols[paired]
-        if paired.sum() < 4:
-            break
+        if paired.sum() < 4 or np.array_equal(choice, previous):
+            break  # converged: the warp was fitted on these very pairs
         weights = np.zeros(n)
         weights[rows[paired]] = 1.0
         target = np.zeros((n, 3))
