@@ -76,6 +76,7 @@ def _run_simulate(args) -> int:
 
 def _train_parser(sub) -> None:
     p = sub.add_parser("train", help="train the correspondence model on the annotated corpus")
+    p.add_argument("--config", help="JSON training configuration (a checkpoint's .json works: its train_config is used); flags override it")
     p.add_argument("--corpus", help="folder with worms.csv (default: ../shared/data/neuropal_corpus or $FDLC_CORPUS)")
     p.add_argument("--train-labs", nargs="+", default=None)
     p.add_argument("--val-labs", nargs="+", default=None)
@@ -83,7 +84,7 @@ def _train_parser(sub) -> None:
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--minutes", type=float, default=None, help="stop after this many minutes")
     p.add_argument("--stop-at", type=int, default=None, help="stop after this step (the LR schedule still spans --steps)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")
     p.add_argument("--init-from", help="start from these weights (path without suffix; keys that fit)")
@@ -92,16 +93,23 @@ def _train_parser(sub) -> None:
     p.add_argument("--val-pairs-per-lab", type=int, default=None)
     p.add_argument("--no-calibrate", action="store_true", help="skip fitting colour weight and temperature")
     p.add_argument("--calibrate-only", action="store_true", help="only calibrate the checkpoint at --out")
-    p.add_argument("--out", default="runs/model", help="checkpoint path without suffix")
+    p.add_argument("--out", default=None, help="checkpoint path without suffix (default runs/model)")
     p.set_defaults(run=_run_train)
 
 
 def _run_train(args) -> int:
     from .train import TrainConfig, train
 
-    cfg = TrainConfig(corpus=args.corpus, seed=args.seed, threads=args.threads, out=args.out,
-                      time_limit_min=args.minutes, resume=args.resume, init_from=args.init_from,
-                      calibrate=not args.no_calibrate, stop_at=args.stop_at)
+    cfg = TrainConfig.from_json(args.config) if args.config else TrainConfig()
+    given = {"corpus": args.corpus, "threads": args.threads, "time_limit_min": args.minutes,
+             "init_from": args.init_from, "stop_at": args.stop_at}
+    for key, value in given.items():
+        if value is not None:
+            setattr(cfg, key, value)
+    cfg.seed = args.seed if args.seed is not None else cfg.seed
+    cfg.out = args.out or cfg.out
+    cfg.resume = args.resume
+    cfg.calibrate = not args.no_calibrate
     if args.colour_input:
         cfg.model = {**cfg.model, "colour_channels": 3}
     if args.eval_every:

@@ -64,6 +64,24 @@ class TrainConfig:
     def to_json(self) -> dict:
         return asdict(self)
 
+    @classmethod
+    def from_json(cls, path: str | Path) -> "TrainConfig":
+        """A configuration from a JSON file: a bare config, or a checkpoint's JSON (train_config)."""
+        from .errors import FdlcError
+
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as exc:
+            raise FdlcError(f"{path}: not a readable JSON training configuration ({exc})") from None
+        data = data.get("train_config", data)
+        unknown = set(data) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise FdlcError(f"{path}: unknown training setting(s) {', '.join(sorted(unknown))}")
+        for key in ("train_labs", "val_labs"):
+            if key in data:
+                data[key] = tuple(data[key])
+        return cls(**data)
+
 
 # Training-time simulator: the published magnitudes, except a smaller transverse roll — the
 # canonical frame plus the 180° flips already cover which side the worm lies on, and a ±81°
@@ -326,7 +344,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 save_model(model, out, {"train_config": cfg.to_json(), "history": history,
                                         "inference": asdict(settings), "best_step": step})
         if out_of_time:
-            log(f"time limit of {cfg.time_limit_min} min reached at step {step}")
+            log(f"stopped at step {step} (--stop-at or the time limit of {cfg.time_limit_min} min)")
             break
     minutes = (time.time() - start) / 60
     if cfg.calibrate and best >= 0:
