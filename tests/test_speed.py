@@ -1,0 +1,81 @@
+"""The speed paths give the same answers as the plain ones (they are options of one model, not a
+second implementation): a shared template (batch 1) equals the template repeated; tests of
+different sizes batched with padding equal one at a time; an all-real mask equals no mask;
+Identifier.match_many equals match_pair."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from napari_fdlc.model import CorrespondenceModel  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    m = CorrespondenceModel({"layers": 2, "dim": 32})
+    # non-zero heads so that the learned part of the scores matters, not only the prior
+    with torch.no_grad():
+        m.project.weight.normal_(0, 0.3)
+        m.displace.weight.normal_(0, 0.05)
+    return m.eval()
+
+
+def _worms(seed, sizes):
+    rng = np.random.default_rng(seed)
+    return [torch.tensor(rng.normal(size=(n, 3)) * [30, 8, 6], dtype=torch.float32) for n in sizes]
+
+
+def test_shared_template_equals_repeated_template(model):
+    (a,), tests = _worms(0, [60]), _worms(1, [50, 50, 50])
+    b = torch.stack(tests)
+    with torch.inference_mode():
+        shared = model(a[None], b)
+        repeated = model(a[None].expand(3, -1, -1).contiguous(), b)
+    assert torch.allclose(shared, repeated, atol=1e-5)
+
+
+def test_padded_batch_equals_one_at_a_time(model):
+    (a,) = _worms(2, [60])
+    tests = _worms(3, [50, 41, 57])
+    size = max(len(t) for t in tests)
+    batch = torch.zeros(3, size, 3)
+    mask = torch.zeros(3, size, dtype=torch.bool)
+    for i, t in enumerate(tests):
+        batch[i, : len(t)] = t
+        mask[i, : len(t)] = True
+    with torch.inference_mode():
+        together = model(a[None], batch, None, mask)
+        for i, t in enumerate(tests):
+            alone = model(a[None], t[None])[0]
+            assert torch.allclose(together[i, : len(t)], alone, atol=1e-5)
+
+
+def test_all_real_mask_equals_no_mask_and_padding_of_template(model):
+    (a,), (b,) = _worms(4, [60]), _worms(5, [45])
+    with torch.inference_mode():
+        plain = model(a[None], b[None])
+        masked = model(a[None], b[None], torch.ones(1, 60, dtype=torch.bool), torch.ones(1, 45, dtype=torch.bool))
+        padded_t = torch.cat([a, torch.zeros(7, 3)])[None]
+        tmask = torch.cat([torch.ones(60, dtype=torch.bool), torch.zeros(7, dtype=torch.bool)])[None]
+        with_pad = model(padded_t, b[None], tmask, None)
+    assert torch.equal(plain, masked)
+    assert torch.allclose(with_pad[..., :60], plain[..., :60], atol=1e-5)
+    assert torch.allclose(with_pad[..., -1], plain[..., -1], atol=1e-5)
+    assert torch.isinf(with_pad[..., 60:67]).all()
+
+
+def test_match_many_equals_match_pair(model, worm, other_worm):
+    from napari_fdlc.identify import Identifier
+    from napari_fdlc.simulate import simulate_worm
+
+    ident = Identifier(model, device="cpu")
+    tests = [simulate_worm(worm, s).table for s in range(3)]
+    many = ident.match_many(other_worm, tests)
+    for test, (probs, info) in zip(tests, many):
+        single, info1 = ident.match_pair(other_worm, test)
+        assert info["orientation"] == info1["orientation"]
+        assert np.allclose(probs, single, atol=1e-5)
