@@ -17,7 +17,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
 from .colour import IDENTITY_CHANNELS
-from .geometry import ORIENTATIONS, PROPER_ORIENTATIONS, canonical_frame
+from .geometry import FLOOR_FLIPS, ORIENTATIONS, canonical_frame
 from .table import NeuronTable
 
 
@@ -46,7 +46,7 @@ def floor_match(template: NeuronTable, test: NeuronTable, use_colour: bool = Fal
         colour_cost = cdist(z(test), z(template), "sqeuclidean")
         colour_cost = 0.3 * colour_cost / colour_cost.mean()
     best = None
-    for orientation in PROPER_ORIENTATIONS:
+    for orientation in FLOOR_FLIPS:
         d = cdist(b @ orientation.T, a, "sqeuclidean")
         cost = d / d.mean() + colour_cost
         r, c = linear_sum_assignment(cost)
@@ -57,7 +57,7 @@ def floor_match(template: NeuronTable, test: NeuronTable, use_colour: bool = Fal
 
 
 def cpd_match(template: NeuronTable, test: NeuronTable, use_colour: bool = False, max_iterations: int = 50) -> np.ndarray:
-    """Non-rigid CPD from the template onto the test in each of the 8 orientations; the one
+    """Non-rigid CPD from the template onto the test in each of the 16 orientations; the one
     with the smallest mean distance to its nearest neighbour wins; Hungarian on distances."""
     from pycpd import DeformableRegistration
 

@@ -1,10 +1,10 @@
 """Coordinate frames shared by the model, the baselines and the simulator.
 
-A worm lies at any angle in XY and on either side. We remove what can be removed without names
-(centre on the median, rotate XY so the principal axis is x) and enumerate what cannot: the
-four proper 180° turns that keep the principal axes (identity; about z; about x = the worm's
-other side; about y), times the two chiralities (a recording mirrored in z by its acquisition
-convention). Which of the eight is right is decided by the matcher's score, never by making the
+A worm lies at any angle in XY, on either side, or (as some labs image) dorso-ventrally. We
+remove what can be removed without names (centre on the median, rotate XY so the principal axis
+is x) and enumerate what cannot: four rolls about the body axis by 90° times the two directions
+of the head (16 with the next factor), times the two chiralities (a recording mirrored in z by
+its acquisition convention). Which of the eight is right is decided by the matcher's score, never by making the
 model mirror-invariant: a mirror swaps left and right neurons.
 """
 
@@ -12,10 +12,25 @@ from __future__ import annotations
 
 import numpy as np
 
-# Proper turns first (index 0..3), then the same with z mirrored (4..7).
-_PROPER = [(1, 1, 1), (-1, -1, 1), (1, -1, -1), (-1, 1, -1)]
-ORIENTATIONS = np.array([np.diag(s) for s in _PROPER] + [np.diag(s) * np.diag((1, 1, -1)) for s in _PROPER], dtype=np.float64)
-PROPER_ORIENTATIONS = ORIENTATIONS[:4]
+def _roll(quarter_turns: int) -> np.ndarray:
+    """Rotation about the body axis (x) by a multiple of 90°."""
+    c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][quarter_turns % 4]
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=np.float64)
+
+
+_HEAD_TAIL = np.diag([-1.0, -1.0, 1.0])  # 180° about z: the head points the other way
+_MIRROR = np.diag([1.0, 1.0, -1.0])  # z mirrored by an acquisition convention
+# Proper orientations first: 4 rolls about the body axis (lying on either side, or viewed
+# dorso-ventrally as some labs image) × head left/right; then the same 8 mirrored.
+_PROPER = [flip @ _roll(q) for flip in (np.eye(3), _HEAD_TAIL) for q in range(4)]
+ORIENTATIONS = np.array(_PROPER + [o @ _MIRROR for o in _PROPER])
+N_PROPER = len(_PROPER)
+# The non-learned floor of docs/fdlc.md tries the four proper 180° flips only.
+FLOOR_FLIPS = np.array([np.eye(3), _HEAD_TAIL, _roll(2), _HEAD_TAIL @ _roll(2)])
+
+
+def is_mirrored(index: int) -> bool:
+    return index >= N_PROPER
 
 
 def canonical_frame(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -67,14 +82,28 @@ def compose_affine(first: np.ndarray, then: np.ndarray) -> np.ndarray:
     return hom @ then
 
 
-def orientation_cost(template: np.ndarray, test: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-    """For each of the 8 orientations, mean squared distance of known pairs (template i, test j)
-    after the best translation; used to find the true orientation of a training pair."""
+def true_orientation(template: np.ndarray, test: np.ndarray, pairs: np.ndarray) -> int:
+    """Index into ORIENTATIONS of the orientation that puts ``test`` on ``template``, from known
+    pairs (template i, test j); both in their canonical frames. Used to label training pairs.
+
+    Chirality first: the best *proper* rotation (Kabsch) fits far worse for a mirrored pair, so
+    the class (proper or mirrored) with the smaller Kabsch residual wins. Within the class, the
+    four flips differ from each other by proper rotations and fit equally well after Kabsch, so
+    the flip that needs the *smallest* further rotation is the one. (Comparing residuals after a
+    translation alone, as a first version did, mislabels strongly bent worms.)
+    """
     a = template[pairs[:, 0]]
-    costs = []
+    b = test[pairs[:, 1]]
+    a = a - a.mean(axis=0)
+    b = b - b.mean(axis=0)
+    residuals, angles = [], []
     for orientation in ORIENTATIONS:
-        b = test[pairs[:, 1]] @ orientation.T
-        d = a - b
-        d = d - d.mean(axis=0)
-        costs.append(float((d**2).sum(axis=1).mean()))
-    return np.array(costs)
+        bk = b @ orientation.T
+        u, _, vt = np.linalg.svd(bk.T @ a)
+        d = np.sign(np.linalg.det(u @ vt)) or 1.0
+        rot = u @ np.diag([1, 1, d]) @ vt  # proper rotation with a ≈ bk @ rot
+        residuals.append(float(((bk @ rot - a) ** 2).sum(axis=1).mean()))
+        angles.append(float(np.arccos(np.clip((np.trace(rot) - 1) / 2, -1, 1))))
+    residuals = np.array(residuals)
+    same_class = residuals <= residuals.min() * (1 + 1e-6) + 1e-9
+    return int(np.argmin(np.where(same_class, angles, np.inf)))

@@ -20,7 +20,7 @@ import numpy as np
 
 from . import colour as colour_model
 from .errors import FdlcError, ModelError, warn
-from .geometry import ORIENTATIONS, apply_affine, canonical_frame, compose_affine, fit_affine
+from .geometry import N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, compose_affine, fit_affine
 from .match import Labelling, make_labelling, name_probabilities
 from .table import NeuronTable
 
@@ -134,7 +134,7 @@ class Identifier:
         """Orientation choice and affine refinement for many tests at once.
 
         ``starts[v]`` (K_v, N_v, 3) holds K_v candidate placements of test v in the template's
-        frame (8 orientations for a full search, 1 when tracking from the previous volume). All
+        frame (16 orientations for a full search, 1 when tracking from the previous volume). All
         candidates of all tests go through the model in one batch; the candidate the model is
         most willing to match wins; then ``refine_steps`` affine passes, batched over tests.
         Returns per test: ``log_p`` (N_v, M + 1), ``best`` (candidate index), ``willingness``
@@ -160,7 +160,7 @@ class Identifier:
                 # rewards orientations where neurons find *distinct* partners.
                 willingness = np.array([assignment_score(lp) for lp in lps])
             if len(lps) == len(ORIENTATIONS):
-                willingness = willingness - self.settings.mirror_penalty * (np.arange(len(lps)) >= 4)
+                willingness = willingness - self.settings.mirror_penalty * (np.arange(len(lps)) >= N_PROPER)
             best = int(np.argmax(willingness))
             results.append({"best": best, "willingness": willingness, "log_p": lps[best],
                             "moved": cands[best], "affine": np.vstack([np.eye(3), np.zeros((1, 3))])})
@@ -185,7 +185,7 @@ class Identifier:
         skips the search (an index into ``geometry.ORIENTATIONS`` already known to be right)."""
         a, _, _ = canonical_frame(template.xyz)
         b, _, _ = canonical_frame(test.xyz)
-        searched = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:4]
+        searched = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:N_PROPER]
         indices = list(range(len(searched))) if orientation is None else [orientation]
         candidates = np.einsum("kij,nj->kni", ORIENTATIONS[indices], b)
         tc, sc = self._model_colours(template, [test], use_colour)
@@ -194,14 +194,14 @@ class Identifier:
         lp = self._calibrate(lp)
         if use_colour:
             lp = self._fuse_colour(lp, template, test)
-        info = {"orientation": best, "mirrored": best >= 4, "willingness": willingness.tolist()}
+        info = {"orientation": best, "mirrored": best >= N_PROPER, "willingness": willingness.tolist()}
         return np.exp(lp), info
 
     def match_many(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True) -> list[tuple[np.ndarray, dict]]:
         """:meth:`match_pair` for many tests against one template, batched through the model
         (same answers; many volumes per second instead of one forward pass per volume)."""
         a, _, _ = canonical_frame(template.xyz)
-        orientations = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:4]
+        orientations = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:N_PROPER]
         starts = [np.einsum("kij,nj->kni", orientations, canonical_frame(t.xyz)[0]) for t in tests]
         out = []
         tc, sc = self._model_colours(template, tests, use_colour)
@@ -209,7 +209,7 @@ class Identifier:
             lp = self._calibrate(found["log_p"])
             lp = self._fuse_colour(lp, template, test) if use_colour else lp
             best = found["best"]
-            out.append((np.exp(lp), {"orientation": best, "mirrored": best >= 4, "willingness": found["willingness"].tolist()}))
+            out.append((np.exp(lp), {"orientation": best, "mirrored": best >= N_PROPER, "willingness": found["willingness"].tolist()}))
         return out
 
     def _model_colours(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool):

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .corpus import LABS, Worm, load_corpus
-from .geometry import ORIENTATIONS, apply_affine, canonical_frame, fit_affine, orientation_cost
+from .geometry import ORIENTATIONS, apply_affine, canonical_frame, fit_affine, true_orientation
 from .simulate import SimulationParams, simulate_worm
 from .colour import IDENTITY_CHANNELS, normal_scores
 from .table import NeuronTable
@@ -139,7 +139,7 @@ def make_example(template: NeuronTable, test: NeuronTable, target: np.ndarray, r
     if len(matched) < 4:
         return None
     pairs = np.column_stack([target[matched], matched])
-    true = int(np.argmin(orientation_cost(a, b, pairs)))
+    true = true_orientation(a, b, pairs)
     u = rng.random()
     negative = False
     if u < cfg.negative_fraction:
