@@ -1,4 +1,4 @@
-"""``fdlc track``: give every neuron of a sequence of volumes its track ID (and name) over time.
+"""give every neuron of a sequence of volumes its track ID (and name) over time (``fdlc track``).
 
 Input: one neuron table with a ``t`` column (time point), a folder of neuron tables (one volume
 each, natural name order), or several tables (in the order given). Track IDs are the row indices
