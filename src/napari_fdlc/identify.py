@@ -38,7 +38,6 @@ class InferenceSettings:
     colour_sigma: float = 0.6  # width of the colour likelihood in normal-score units
     temperature: float = 1.0  # divides the log-probabilities (calibration, fitted on training labs)
     chirality_search: bool = True  # also try the z-mirrored recording convention
-    orientation_score: str = "willingness"  # or "assignment" (see Identifier._align)
     # Prior against the mirrored convention: a bilaterally symmetric head matches almost as well
     # mirrored, and most recordings are not mirrored; fitted on training labs (train.calibrate).
     mirror_penalty: float = 0.0
@@ -155,10 +154,6 @@ class Identifier:
             # Trained with wrongly oriented pairs as negatives, the model puts its mass on "no
             # match" when the worms are not aligned: the orientation it is most willing to match wins.
             willingness = np.log1p(-np.exp(np.minimum(lps[:, :, m], -1e-6))).mean(axis=1)
-            if self.settings.orientation_score == "assignment" and len(lps) > 1:
-                # Mean log-probability of the one-to-one assignment: unlike willingness alone it
-                # rewards orientations where neurons find *distinct* partners.
-                willingness = np.array([assignment_score(lp) for lp in lps])
             if len(lps) == len(ORIENTATIONS):
                 willingness = willingness - self.settings.mirror_penalty * (np.arange(len(lps)) >= N_PROPER)
             best = int(np.argmax(willingness))
@@ -279,17 +274,6 @@ class Identifier:
         names, probs = name_probabilities(per_template)
         info = {"templates": infos, "colour": use_colour}
         return make_labelling(names, probs, fixed, info, self.settings.no_match_weight)
-
-
-def assignment_score(log_p: np.ndarray) -> float:
-    """Mean log-probability of the best one-to-one assignment onto template neurons, "no match"
-    excluded: a wrong orientation cannot win by declaring everything unmatched."""
-    from scipy.optimize import linear_sum_assignment
-
-    cost = -log_p[:, :-1]
-    cost = np.where(np.isfinite(cost), cost, 1e9)
-    rows, cols = linear_sum_assignment(cost)
-    return float(-cost[rows, cols].mean())
 
 
 _DEFAULT: dict = {}
