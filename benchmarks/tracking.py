@@ -28,7 +28,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # see benchmarks/speed.py
 
-import numpy as np  # noqa: E402
 
 
 def _weights(path: str | None) -> Path:
