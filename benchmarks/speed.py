@@ -6,14 +6,15 @@ Latency is the median wall time for one test volume (~130 neurons) from tables i
 one-to-one assignment and the top-3 candidates done, model loaded and warm. "Batched" is
 volumes per second when many volumes are given at once. Configurations:
 
-* full, 1 template: orientation and chirality search (8 orientations) + affine refinement +
+* full, 1 template: orientation and chirality search (every orientation of
+  ``geometry.ORIENTATIONS``) + affine refinement +
   colour, what ``fdlc label --template T`` does, i.e. the configuration of the accuracy figures;
 * full, panel: the same against the built-in reference panel (5 templates), what Auto-label does;
 * track: ``fdlc track`` defaults (full search on the first volume only; every later volume placed
   by the warp of the one before, one model pass, assignment); latency = one volume at a time
   (chunk 1, what a live recording needs), batched = chunk 16; the first volume's search is
   included in the average;
-* CPD: ``baselines.cpd_match`` (8 orientations) + the same assignment and candidates.
+* CPD: ``baselines.cpd_match`` (every orientation) + the same assignment and candidates.
 
 Peak memory: Python/numpy allocations (tracemalloc) during one run of each configuration, and
 the process's peak resident size at the end (``ru_maxrss``; includes torch itself). With CUDA,
@@ -112,6 +113,7 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     from napari_fdlc.baselines import cpd_match
+    from napari_fdlc.geometry import ORIENTATIONS
     from napari_fdlc.identify import Identifier
     from napari_fdlc.match import make_labelling, name_probabilities
     from napari_fdlc.reference import generate_worm, load_panel
@@ -169,10 +171,11 @@ def main(argv=None) -> int:
                 row["peak_mb"] = _peak_mb(one)
             print(f"  {device} {name}: {wall:.1f} ms/volume, {row[f'{device}_rate']:.0f} volumes/s", file=sys.stderr, flush=True)
     wall, cpu = _median_ms(cpd_one, args.cpd_repeats)
-    rows["CPD (pycpd, 8 orientations)"] = {"cpu_ms": wall, "cpu_cpu_ms": cpu, "cpu_rate": 1000.0 / wall, "peak_mb": _peak_mb(cpd_one)}
+    cpd_name = f"CPD (pycpd, {len(ORIENTATIONS)} orientations)"
+    rows[cpd_name] = {"cpu_ms": wall, "cpu_cpu_ms": cpu, "cpu_rate": 1000.0 / wall, "peak_mb": _peak_mb(cpd_one)}
     print(f"  cpu CPD: {wall:.1f} ms/volume", file=sys.stderr, flush=True)
 
-    cpd_ms = rows["CPD (pycpd, 8 orientations)"]["cpu_ms"]
+    cpd_ms = rows[cpd_name]["cpu_ms"]
     load = os.getloadavg()
     print(f"# speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__}, "
           f"{args.threads} torch thread(s), OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}; weights {weights}")

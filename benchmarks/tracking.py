@@ -12,7 +12,7 @@ jitter; 2 = twice as fast). The reference is the first volume. Accuracy = fracti
 whose partner is in the reference that get its track ID; "untracked right" = fraction of the
 others (spurious, or dropped from the reference) left untracked. Positions only (the synthetic
 colours are nearly noise-free, so colour would make it trivial). CPD (``baselines.cpd_match``,
-8 orientations, each volume to the reference) is slow, so it runs on the first ``--cpd-frames``
+every orientation, each volume to the reference) is slow, so it runs on the first ``--cpd-frames``
 volumes of each sequence, and fdlc's accuracy on the same volumes is shown beside it.
 """
 
@@ -58,6 +58,7 @@ def main(argv=None) -> int:
     import torch
 
     torch.set_num_threads(args.threads)
+    from napari_fdlc.geometry import ORIENTATIONS
     from napari_fdlc.identify import Identifier
     from napari_fdlc.reference import generate_worm
     from napari_fdlc.track import SequenceParams, Sequence, TrackSettings, simulate_sequence, track, tracking_accuracy
@@ -118,7 +119,7 @@ def main(argv=None) -> int:
                 total += score["neurons"]
                 free += score["untracked_right"]
             rate = args.sequences * cpd_n / elapsed
-            print(f"| {motion:g}× | CPD (pycpd, 8 orientations, each volume to the reference) | – | "
+            print(f"| {motion:g}× | CPD (pycpd, {len(ORIENTATIONS)} orientations, each volume to the reference) | – | "
                   f"{100 * free / args.sequences:.0f} % | {rate:.1f} | {100 * hit / total:.1f} % |", flush=True)
     return 0
 

@@ -7,7 +7,7 @@ first once, so they share its IDs; their neurons it lacks get new IDs after its 
 reference is labelled, each track also carries the reference neuron's name.
 
 Speed comes from the worm moving smoothly. Consecutive volumes share their orientation and
-nearly their pose, so only the first volume gets the full search (8 orientations, see
+nearly their pose, so only the first volume gets the full search (every orientation of
 :mod:`napari_fdlc.geometry`); every later volume is *placed* in the reference's frame by a
 :class:`Warp` (an affine map plus a smooth non-rigid displacement) carried over from the volume
 before it. With ``placement="geometry"`` (default) the warp is carried by a cheap geometric chain
@@ -15,7 +15,7 @@ before it. With ``placement="geometry"`` (default) the warp is carried by a chea
 reference by the one-to-one assignment on distance, refit, a few rounds (ICP-like). The chain
 does not depend on the model's answers, so the model then sees a whole chunk of ``chunk``
 volumes as one batch, and the result does not depend on the chunk size. A volume where fewer
-than ``lost_fraction`` of the neurons pair up (a jump) is searched again in all 8 orientations
+than ``lost_fraction`` of the neurons pair up (a jump) is searched again in every orientation
 and the chain restarts from it. The model's log-probabilities (plus colour) are fused with a
 same-worm position likelihood (``position_sigma_um``: within one recording a neuron stays where
 the warp puts it, up to segmentation jitter; the model itself was trained across worms) and the
@@ -288,7 +288,7 @@ def _model_colours(identifier, ref: _Reference, volumes: list[NeuronTable], s: T
 
 
 def _full_search(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings) -> list[tuple]:
-    """(log p, placement) of each volume in the best of the 8 orientations (no refinement)."""
+    """(log p, placement) of each volume in the best orientation of the full search (no refinement)."""
     orientations = ORIENTATIONS if identifier.settings.chirality_search else ORIENTATIONS[:N_PROPER]
     starts = [np.einsum("kij,nj->kni", orientations, canonical_frame(v.xyz)[0]) for v in volumes]
     tc, sc = _model_colours(identifier, ref, volumes, s)
@@ -516,7 +516,7 @@ def _assign_ids(probs: np.ndarray, no_match_weight: float) -> tuple[np.ndarray, 
 
 
 def _track_cpd(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, progress) -> TrackResult:
-    """The classical baseline: every volume to the first reference with CPD (all 8 orientations)."""
+    """The classical baseline: every volume to the first reference with CPD (every orientation)."""
     from .baselines import cpd_match
 
     ref = tables[0]
