@@ -382,6 +382,17 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
     expected calibration error of ``auto_conf``."""
     from .evaluate import Scores
 
+    # Every setting fitted here acts after the model's forward passes: compute those once.
+    forward, cache = identifier._forward_many, {}
+
+    def cached_forward(template_xyz, tests, template_colour=None, test_colours=None):
+        key = (template_xyz.tobytes(), tuple(t.tobytes() for t in tests), template_colour is not None)
+        if key not in cache:
+            cache[key] = forward(template_xyz, tests, template_colour, test_colours)
+        return cache[key]
+
+    identifier._forward_many = cached_forward
+
     def run(use_colour):
         scores = Scores()
         for pairs in val_pairs.values():
@@ -391,7 +402,7 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
 
     settings = identifier.settings
     best = None
-    for penalty in (0.0, 0.02, 0.05, 0.1, 0.2):
+    for penalty in (0.0, 0.05, 0.1, 0.2, 0.4, 1.0):
         settings.mirror_penalty = penalty
         top1 = run(False).summary()["top1"]
         log(f"calibrate: mirror_penalty {penalty}: top-1 {top1:.3f}")
@@ -399,7 +410,7 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
             best = (penalty, top1)
     settings.mirror_penalty = best[0]
     best = None
-    for weight in (0.05, 0.2, 0.5):
+    for weight in (0.05, 0.2, 0.5, 1.0):
         settings.no_match_weight = weight
         top1 = run(False).summary()["top1"]
         log(f"calibrate: no_match_weight {weight}: top-1 {top1:.3f}")
@@ -415,11 +426,12 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
             best = (weight, top1)
     settings.colour_weight = best[0]
     best = None
-    for temperature in (0.6, 0.8, 1.0, 1.25, 1.5, 2.0, 3.0):
+    for temperature in (0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.5, 2.0):
         settings.temperature = temperature
         ece = np.mean([run(c).summary()["ece"] for c in (False, True)])
         log(f"calibrate: temperature {temperature}: ECE {ece:.3f}")
         if best is None or ece < best[1]:
             best = (temperature, ece)
     settings.temperature = best[0]
+    identifier._forward_many = forward
     return asdict(settings)
