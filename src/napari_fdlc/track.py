@@ -567,8 +567,9 @@ class SequenceParams:
     bend_curvature: float = 0.006  # 1/µm: the largest |curvature| of the centreline bend
     bend_period: float = 60.0  # frames per bending cycle (crawling)
     roll: float = 0.25  # radians: largest turn about the body axis (y-z plane)
-    xy_rotation: float = 0.6  # radians: largest turn in XY over the sequence
-    drift_um: float = 15.0  # largest translation in XY over the sequence
+    xy_rotation: float = 0.6  # radians: largest turn in XY
+    drift_um: float = 15.0  # largest translation in XY
+    drift_period: float = 200.0  # frames per cycle of the XY turn and drift
     scale: float = 0.03  # each axis scaled by 1 ± this, smoothly
     drop_fraction: tuple[float, float] = (0.03, 0.12)  # of neurons missed, per volume
     max_spurious: int = 8  # spurious detections per volume, at least 2 µm from real ones
@@ -614,12 +615,11 @@ def simulate_sequence(
     p = params or SequenceParams()
     canon, centre, rotation = canonical_frame(table.xyz)
     T = p.frames
-    span = max(T, 2)
     kappa = p.bend_curvature * _smooth(rng, T, p.bend_period)
     phi = 0.2 * _smooth(rng, T, 2 * p.bend_period)
     roll = p.roll * _smooth(rng, T, 2 * p.bend_period)
-    angle = p.xy_rotation * _smooth(rng, T, 2 * span)
-    drift = p.drift_um * np.column_stack([_smooth(rng, T, 2 * span), _smooth(rng, T, 2 * span)])
+    angle = p.xy_rotation * _smooth(rng, T, p.drift_period)
+    drift = p.drift_um * np.column_stack([_smooth(rng, T, p.drift_period), _smooth(rng, T, p.drift_period)])
     scales = 1 + p.scale * np.column_stack([_smooth(rng, T, p.bend_period) for _ in range(3)])
     volumes, origins = [], []
     for t in range(T):
