@@ -85,9 +85,8 @@ class Atlas:
             raise ModelError(f"{path}: not a valid atlas file ({exc})") from None
 
 
-def _similarity(src: np.ndarray, dst: np.ndarray, allow_mirror: bool):
-    """Best ``dst ≈ s * (src - mu_s) @ R.T + mu_d``; returns (R, s, mu_s, mu_d, mean squared
-    residual). With ``allow_mirror`` R may be a reflection when that fits better."""
+def _similarity(src: np.ndarray, dst: np.ndarray, allow_mirror: bool) -> tuple[np.ndarray, float]:
+    """Best ``dst ≈ s * src @ R.T + t``; returns (aligned src, mean squared residual)."""
     mu_s, mu_d = src.mean(0), dst.mean(0)
     s0, d0 = src - mu_s, dst - mu_d
     u, sig, vt = np.linalg.svd(d0.T @ s0)
@@ -117,7 +116,6 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
     reference = int(np.argmax([t.named.sum() for t in tables]))
     mean = {n: canon[reference][i] for i, n in enumerate(tables[reference].labels) if n}
     aligned = [None] * len(tables)
-    mirrored = np.zeros(len(tables), bool)
     for _ in range(rounds):
         for k, (t, c) in enumerate(zip(tables, canon)):
             rows = [i for i, n in enumerate(t.labels) if n in mean]
@@ -126,7 +124,6 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
                 continue
             dst = np.array([mean[t.labels[i]] for i in rows])
             rot, scale, mu_s, mu_d, _ = _similarity(c[rows], dst, allow_mirror=True)
-            mirrored[k] = np.linalg.det(rot) < 0
             aligned[k] = scale * (c - mu_s) @ rot.T + mu_d
         positions: dict[str, list] = {}
         for t, a in zip(tables, aligned):
@@ -152,11 +149,6 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
     col = [np.array(stats[n]["col"]).reshape(-1, 3) for n in names]
     mean_pos = np.array([p.mean(0) for p in pos])
     centre = np.median(mean_pos, axis=0)
-    if mirrored[[a is not None for a in aligned]].mean() > 0.5:
-        # The atlas took the chirality of its first reference worm; give it the chirality of
-        # most recordings instead, which is what the inference's prior against mirroring assumes.
-        mean_pos = mean_pos * [1, 1, -1]
-        centre = centre * [1, 1, -1]
     return Atlas(
         names=np.array(names, dtype=object),
         mean=mean_pos - centre,
