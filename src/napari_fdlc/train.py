@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -309,7 +310,10 @@ def train(cfg: TrainConfig, log=print) -> dict:
     settings = InferenceSettings()
     for _ in range(1, first_step):
         sched.step()  # the learning-rate schedule continues where it stopped
-    for step in range(first_step, cfg.steps + 1):
+    from tqdm import tqdm
+
+    progress = tqdm(range(first_step, cfg.steps + 1), desc="training", unit="step", disable=not sys.stderr.isatty())
+    for step in progress:
         model.train()
         examples = [sample_example(train_worms, rng, cfg) for _ in range(cfg.batch_size)]
         batch = collate(examples, torch, cfg.colour_dropout, rng)
@@ -323,6 +327,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         opt.step()
         sched.step()
         running.append(loss.item())
+        progress.set_postfix(loss=f"{loss.item():.3f}", refresh=False)
         elapsed = (time.time() - start) / 60
         out_of_time = (cfg.time_limit_min is not None and elapsed > cfg.time_limit_min) or step == cfg.stop_at
         if step % cfg.eval_every == 0 or step == cfg.steps or out_of_time:
