@@ -119,3 +119,15 @@ def test_weights_round_trip_and_refusals(tmp_path):
         load_model(tmp_path / "m")
     with pytest.raises(ModelError, match="missing"):
         load_model(tmp_path / "absent")
+
+
+def test_partial_colour_channels_still_count(worm, other_worm):
+    """Only R shared: the model gets no colour input, but the shared channel is fused."""
+    from napari_fdlc.table import NeuronTable
+
+    torch.manual_seed(0)
+    ident = Identifier(CorrespondenceModel({"layers": 1, "dim": 32, "colour_channels": 3}), device="cpu")
+    only_r = NeuronTable(worm.xyz, {"R": worm.colours["R"]})
+    with_r = ident.label(only_r, [other_worm], use_colour=True)
+    without = ident.label(only_r, [other_worm], use_colour=False)
+    assert with_r.info["colour"] and not np.allclose(with_r.probs, without.probs)
