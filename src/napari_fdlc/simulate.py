@@ -50,23 +50,19 @@ class SyntheticWorm:
     origin: np.ndarray  # index of the source neuron for each neuron, -1 = spurious
 
 
-def _bend(canon: np.ndarray, rng, max_curvature: float) -> np.ndarray:
-    """Bend the straight worm (body axis = x) onto a circular arc of random curvature, with a
-    random twist of the bending plane between y and z."""
-    kappa = rng.uniform(-max_curvature, max_curvature)
-    if abs(kappa) < 1e-6:
+def bend(canon: np.ndarray, kappa: float, phi: float) -> np.ndarray:
+    """Bend the straight worm (body axis x) onto a circular arc of curvature ``kappa`` (1/µm)
+    in the plane at angle ``phi`` from y toward z."""
+    if abs(kappa) < 1e-9:
         return canon.copy()
     x, y, z = canon.T
-    phi = rng.uniform(-0.3, 0.3)  # bending plane mostly in XY (worms crawl on their side)
     lateral = y * np.cos(phi) + z * np.sin(phi)
     other = -y * np.sin(phi) + z * np.cos(phi)
     radius = 1.0 / kappa
     theta = x / radius
     bx = (radius - lateral) * np.sin(theta)
     blat = radius - (radius - lateral) * np.cos(theta)
-    y2 = blat * np.cos(phi) - other * np.sin(phi)
-    z2 = blat * np.sin(phi) + other * np.cos(phi)
-    return np.column_stack([bx, y2, z2])
+    return np.column_stack([bx, blat * np.cos(phi) - other * np.sin(phi), blat * np.sin(phi) + other * np.cos(phi)])
 
 
 def _cpd_warp(points: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -88,7 +84,8 @@ def simulate_worm(
     rng = np.random.default_rng(rng)
     p = params or SimulationParams()
     canon, centre, rotation = canonical_frame(table.xyz)
-    pts = _bend(canon, rng, p.bend_curvature)
+    # A random curvature; the bending plane mostly in XY (worms crawl on their side).
+    pts = bend(canon, rng.uniform(-p.bend_curvature, p.bend_curvature), rng.uniform(-0.3, 0.3))
     if p.warp_toward_other and other is not None and len(other) >= 3:
         other_canon, _, _ = canonical_frame(other.xyz)
         pts = _cpd_warp(pts, other_canon)

@@ -45,6 +45,7 @@ import pandas as pd
 from .errors import FdlcError, TableError
 from .geometry import N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, fit_affine
 from .match import assign
+from .simulate import bend
 from .table import COORDS, NeuronTable, read_table
 
 UNTRACKED = -1
@@ -254,7 +255,8 @@ def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: Tra
     if calibrate is not None:
         lp = calibrate(lp)
     if s.use_colour:
-        lp = identifier._fuse_colour(lp, ref.table, volume)
+        saw = _model_colours(identifier, ref, [volume], s)[0] is not None
+        lp = identifier._fuse_colour(lp, ref.table, volume, model_saw_colour=saw)
     if s.position_sigma_um > 0:
         lp = _fuse_position(lp, placed, ref.xyz, s.position_sigma_um)
     p = np.exp(lp[:, :-1])
@@ -587,21 +589,6 @@ def _smooth(rng, frames: int, period: float) -> np.ndarray:
     return curve / max(np.abs(curve).max(), 1e-9)
 
 
-def _bend(canon: np.ndarray, kappa: float, phi: float) -> np.ndarray:
-    """Bend the straight worm (body axis x) onto a circular arc of curvature ``kappa`` in the
-    plane at angle ``phi`` from y toward z."""
-    if abs(kappa) < 1e-9:
-        return canon.copy()
-    x, y, z = canon.T
-    lateral = y * np.cos(phi) + z * np.sin(phi)
-    other = -y * np.sin(phi) + z * np.cos(phi)
-    radius = 1.0 / kappa
-    theta = x / radius
-    bx = (radius - lateral) * np.sin(theta)
-    blat = radius - (radius - lateral) * np.cos(theta)
-    return np.column_stack([bx, blat * np.cos(phi) - other * np.sin(phi), blat * np.sin(phi) + other * np.cos(phi)])
-
-
 def simulate_sequence(
     table: NeuronTable,
     rng: np.random.Generator | int | None = None,
@@ -623,7 +610,7 @@ def simulate_sequence(
     scales = 1 + p.scale * np.column_stack([_smooth(rng, T, p.bend_period) for _ in range(3)])
     volumes, origins = [], []
     for t in range(T):
-        pts = _bend(canon, kappa[t], phi[t])
+        pts = bend(canon, kappa[t], phi[t])
         c, s = np.cos(roll[t]), np.sin(roll[t])
         pts[:, 1:] = pts[:, 1:] @ np.array([[c, -s], [s, c]]).T
         pts = pts * scales[t]

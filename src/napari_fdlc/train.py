@@ -406,37 +406,21 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
         return scores
 
     settings = identifier.settings
-    best = None
-    for penalty in (0.0, 0.05, 0.1, 0.2, 0.4, 1.0):
-        settings.mirror_penalty = penalty
-        top1 = run(False).summary()["top1"]
-        log(f"calibrate: mirror_penalty {penalty}: top-1 {top1:.3f}")
-        if best is None or top1 > best[1]:
-            best = (penalty, top1)
-    settings.mirror_penalty = best[0]
-    best = None
-    for weight in (0.05, 0.2, 0.5, 1.0):
-        settings.no_match_weight = weight
-        top1 = run(False).summary()["top1"]
-        log(f"calibrate: no_match_weight {weight}: top-1 {top1:.3f}")
-        if best is None or top1 > best[1]:
-            best = (weight, top1)
-    settings.no_match_weight = best[0]
-    best = None
-    for weight in (0.0, 0.25, 0.5, 1.0):
-        settings.colour_weight = weight
-        top1 = run(True).summary()["top1"]
-        log(f"calibrate: colour_weight {weight}: top-1 {top1:.3f}")
-        if best is None or top1 > best[1]:
-            best = (weight, top1)
-    settings.colour_weight = best[0]
-    best = None
-    for temperature in (0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.5, 2.0):
-        settings.temperature = temperature
-        ece = np.mean([run(c).summary()["ece"] for c in (False, True)])
-        log(f"calibrate: temperature {temperature}: ECE {ece:.3f}")
-        if best is None or ece < best[1]:
-            best = (temperature, ece)
-    settings.temperature = best[0]
+
+    def choose(name, values, score):
+        """Set ``settings.name`` to the value with the highest score (first one on ties)."""
+        results = []
+        for value in values:
+            setattr(settings, name, value)
+            results.append(score())
+            log(f"calibrate: {name} {value}: {results[-1]:.3f}")
+        setattr(settings, name, values[int(np.argmax(results))])
+
+    choose("mirror_penalty", (0.0, 0.05, 0.1, 0.2, 0.4, 1.0), lambda: run(False).summary()["top1"])
+    choose("no_match_weight", (0.05, 0.2, 0.5, 1.0), lambda: run(False).summary()["top1"])
+    choose("colour_weight", (0.0, 0.25, 0.5, 1.0), lambda: run(True).summary()["top1"])
+    # lowest expected calibration error, position only and with colour
+    choose("temperature", (0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.5, 2.0),
+           lambda: -np.mean([run(c).summary()["ece"] for c in (False, True)]))
     identifier._forward_many = forward
     return asdict(settings)
