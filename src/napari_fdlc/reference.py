@@ -85,8 +85,9 @@ class Atlas:
             raise ModelError(f"{path}: not a valid atlas file ({exc})") from None
 
 
-def _similarity(src: np.ndarray, dst: np.ndarray, allow_mirror: bool) -> tuple[np.ndarray, float]:
-    """Best ``dst ≈ s * src @ R.T + t``; returns (aligned src, mean squared residual)."""
+def _similarity(src: np.ndarray, dst: np.ndarray, allow_mirror: bool):
+    """Best ``dst ≈ s * (src - mu_s) @ R.T + mu_d``; returns (R, s, mu_s, mu_d, mean squared
+    residual). With ``allow_mirror`` R may be a reflection when that fits better."""
     mu_s, mu_d = src.mean(0), dst.mean(0)
     s0, d0 = src - mu_s, dst - mu_d
     u, sig, vt = np.linalg.svd(d0.T @ s0)
