@@ -17,7 +17,7 @@ def test_manifest_is_valid():
     manifest = PluginManifest.from_distribution("napari-fdlc")
     manifest.validate_imports()
     c = manifest.contributions
-    assert {w.display_name for w in c.widgets} == {"Auto-label"}
+    assert {w.display_name for w in c.widgets} == {"Auto-label", "Track neurons"}
     assert [s.key for s in c.sample_data] == ["neuropal"]
     assert len(c.readers) == 2 and c.writers[0].layer_types == ["points"]
 
