@@ -335,8 +335,10 @@ def train(cfg: TrainConfig, log=print) -> dict:
             identifier = Identifier(model, settings, device)
             scores = {lab: pair_accuracy(identifier, pairs) for lab, pairs in val_pairs.items()}
             colour_scores = {lab: pair_accuracy(identifier, pairs, use_colour=True) for lab, pairs in val_pairs.items()}
-            # Keep the checkpoint best on average over labs, position-only and with colour.
-            mean = float(np.mean([s["top1"] for s in [*scores.values(), *colour_scores.values()]])) if scores else 0.0
+            # Keep the checkpoint best on average over the *training* labs' held-out worms,
+            # position-only and with colour: a held-out lab is watched, never used to choose.
+            own = [lab for lab in scores if lab in cfg.train_labs] or list(scores)
+            mean = float(np.mean([d[lab]["top1"] for d in (scores, colour_scores) for lab in own])) if scores else 0.0
             entry = {"step": step, "minutes": round(elapsed, 2), "loss": float(np.mean(running)),
                      "val_top1": {k: round(v["top1"], 4) for k, v in scores.items()},
                      "val_top1_colour": {k: round(v["top1"], 4) for k, v in colour_scores.items()},
