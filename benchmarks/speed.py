@@ -42,19 +42,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 
-def _weights(path: str | None) -> Path:
-    from napari_fdlc.identify import shipped_weights
-
-    if path:
-        return Path(path)
-    if shipped_weights().with_suffix(".safetensors").exists():
-        return shipped_weights()
-    runs = sorted(Path("runs").glob("*/model.safetensors"), key=lambda p: p.stat().st_mtime)
-    if runs:
-        return runs[-1].with_suffix("")
-    sys.exit("no weights: pass --weights (no shipped model and nothing under runs/)")
-
-
 def _median_ms(fn, repeats: int) -> tuple[float, float]:
     """(median wall ms, median CPU ms of this process) over ``repeats`` calls after one warm-up."""
     fn()
@@ -101,7 +88,7 @@ def _label_many(identifier, tests, templates, use_colour=True):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--weights", default=None, help="model path without suffix (default: shipped, else newest runs/*/model)")
+    ap.add_argument("--weights", default=None, help="model path without suffix (default: the shipped model)")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     ap.add_argument("--repeats", type=int, default=30, help="latency runs per configuration (median)")
     ap.add_argument("--batch", type=int, default=64, help="volumes for the batched figures")
@@ -120,7 +107,7 @@ def main(argv=None) -> int:
     from napari_fdlc.simulate import simulate_worm
     from napari_fdlc.track import SequenceParams, TrackSettings, simulate_sequence, track
 
-    weights = _weights(args.weights)
+    weights = args.weights  # None: the shipped model
     template = generate_worm(seed=1)
     source = generate_worm(seed=2)
     rng = np.random.default_rng(args.seed)
@@ -178,7 +165,7 @@ def main(argv=None) -> int:
     cpd_ms = rows[cpd_name]["cpu_ms"]
     load = os.getloadavg()
     print(f"# speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__}, "
-          f"{args.threads} torch thread(s), OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}; weights {weights}")
+          f"{args.threads} torch thread(s), OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}; weights {weights or 'shipped'}")
     print(f"test volume: {len(test)} neurons; template {len(template)} neurons; panel {len(panel)} templates; "
           f"batched over {args.batch} volumes (panel: 16); load average before the run {load[0]:.1f}")
     print()

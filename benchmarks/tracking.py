@@ -30,23 +30,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # see benchmarks/speed.py
 
 
 
-def _weights(path: str | None) -> Path:
-    """--weights, else the shipped model, else the newest runs/*/model (as benchmarks/speed.py)."""
-    from napari_fdlc.identify import shipped_weights
-
-    if path:
-        return Path(path)
-    if shipped_weights().with_suffix(".safetensors").exists():
-        return shipped_weights()
-    runs = sorted(Path("runs").glob("*/model.safetensors"), key=lambda p: p.stat().st_mtime)
-    if runs:
-        return runs[-1].with_suffix("")
-    sys.exit("no weights: pass --weights (no shipped model and nothing under runs/)")
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--weights", default=None, help="model path without suffix (default: shipped, else newest runs/*/model)")
+    ap.add_argument("--weights", default=None, help="model path without suffix (default: the shipped model)")
     ap.add_argument("--sequences", type=int, default=5)
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--motion", type=float, nargs="+", default=[1.0, 2.0])
@@ -63,7 +49,7 @@ def main(argv=None) -> int:
     from napari_fdlc.reference import generate_worm
     from napari_fdlc.track import SequenceParams, Sequence, TrackSettings, simulate_sequence, track, tracking_accuracy
 
-    weights = _weights(args.weights)
+    weights = args.weights  # None: the shipped model
     identifier = Identifier.load(weights, device="cpu")
     base = TrackSettings(use_colour=False)
     methods = {
@@ -75,7 +61,7 @@ def main(argv=None) -> int:
         "geometry alone (warp chain, no model)": ("geometry", base),
     }
     print(f"# tracking: {args.sequences} sequences × {args.frames} volumes per motion level, positions only; "
-          f"weights {weights}; {args.threads} torch thread(s)")
+          f"weights {weights or 'shipped'}; {args.threads} torch thread(s)")
     print()
     print("| motion | method | accuracy | untracked right | volumes/s | accuracy on the CPD volumes |")
     print("|---|---|---|---|---|---|")

@@ -46,12 +46,7 @@ def run_demo(
             viewer.window._qt_window.resize(*WINDOW_SIZE)
         except AttributeError:
             pass
-        viewer.open_sample("napari-fdlc", "neuropal")
-        _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
-        if identifier is not None:
-            widget.identifier = identifier
-        if templates is not None:
-            widget.set_templates(templates)
+        widget = open_sample_with_widget(viewer, identifier, templates)
         if not headless:
             napari.run()
             return None
@@ -74,6 +69,18 @@ def run_demo(
                 os.environ.pop("FDLC_SESSION_DIR", None)
             else:
                 os.environ["FDLC_SESSION_DIR"] = old_env
+
+
+def open_sample_with_widget(viewer, identifier=None, templates=None):
+    """Open the bundled sample and the Auto-label dock; ``identifier`` / ``templates`` replace the
+    shipped model / built-in panel (tests, docs)."""
+    viewer.open_sample("napari-fdlc", "neuropal")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    if identifier is not None:
+        widget.identifier = identifier
+    if templates is not None:
+        widget.set_templates(templates)
+    return widget
 
 
 def show_labelled_plane(viewer, layer) -> int:
@@ -105,12 +112,7 @@ def docs_screenshot(path: str | os.PathLike, *, identifier=None, templates=None,
         viewer = napari.Viewer(show=False, title="napari-fdlc")
         try:
             viewer.window._qt_window.resize(*WINDOW_SIZE)
-            viewer.open_sample("napari-fdlc", "neuropal")
-            _, w = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
-            if identifier is not None:
-                w.identifier = identifier
-            if templates is not None:
-                w.set_templates(templates)
+            w = open_sample_with_widget(viewer, identifier, templates)
             layer = w.auto_label()
             if layer is None:
                 raise FdlcError(w.last_error or "auto-label failed")
