@@ -133,9 +133,9 @@ def main(argv=None) -> int:
                 lambda: _label_many(ident, tests, [template]),
                 len(tests),
             ),
-            f"fdlc full, panel ({len(panel)} templates)": (
-                lambda: ident.label(test, panel).candidates(3),
-                lambda: _label_many(ident, tests[:16], panel),
+            f"fdlc full, panel ({len(panel.templates)} templates)": (
+                lambda: ident.label_panel(test, panel).candidates(3),
+                lambda: [ident.label_panel(t, panel).candidates(3) for t in tests[:16]],
                 16,
             ),
             "fdlc track (propagated, chunk 1 / 16)": (
@@ -166,7 +166,7 @@ def main(argv=None) -> int:
     load = os.getloadavg()
     print(f"# speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__}, "
           f"{args.threads} torch thread(s), OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}; weights {weights or 'shipped'}")
-    print(f"test volume: {len(test)} neurons; template {len(template)} neurons; panel {len(panel)} templates; "
+    print(f"test volume: {len(test)} neurons; template {len(template)} neurons; panel {len(panel.templates)} templates; "
           f"batched over {args.batch} volumes (panel: 16); load average before the run {load[0]:.1f}")
     print()
     head = "| configuration | latency, ms/volume (CPU ms) | batched, volumes/s | CPD ÷ fdlc latency | peak Python memory, MB |"

@@ -8,7 +8,7 @@ def test_shipped_atlas_and_panel():
     assert len(atlas.names) > 100 and len(set(atlas.names)) == len(atlas.names)
     assert np.all(atlas.sd > 0) and np.all((atlas.frequency > 0) & (atlas.frequency <= 1))
     panel = load_panel()
-    assert len(panel) >= 2 and all(t.named.all() for t in panel)
+    assert len(panel.templates) >= 2 and all(t.named.all() for t in panel.templates)
 
 
 def test_atlas_round_trip(tmp_path):

@@ -86,12 +86,12 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
         if panel_worms_per_lab <= 0:
             continue
         panel = make_panel(build_atlas([w for w in worms if w.lab != lab]))
-        vocabulary = {n for t in panel for n in t.names}
+        vocabulary = panel.names
         for use_colour in (False, True):
             scores = Scores()
             for test in tables[:panel_worms_per_lab]:
                 t0 = time.perf_counter()
-                scores.add(identifier.label(test, panel, use_colour=use_colour, shared_frame=True), test, vocabulary, time.perf_counter() - t0)
+                scores.add(identifier.label_panel(test, panel, use_colour=use_colour), test, vocabulary, time.perf_counter() - t0)
             rows.append((lab, "panel", "fdlc", "colour" if use_colour else "position", scores.summary()))
             _log(f"{lab} panel colour={use_colour}: {rows[-1][-1]}")
     # Held-out synthetic pairs: a worm and its simulated copy (published simulator magnitudes).

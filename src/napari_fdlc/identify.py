@@ -15,6 +15,7 @@ import json
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,6 +24,9 @@ from .errors import FdlcError, ModelError, warn
 from .geometry import N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, compose_affine, fit_affine
 from .match import Labelling, make_labelling, name_probabilities
 from .table import NeuronTable
+
+if TYPE_CHECKING:
+    from .reference import Panel
 
 WEIGHTS_NAME = "fdlc_model"
 
@@ -154,13 +158,11 @@ class Identifier:
         for cands in starts:
             lps = np.stack(log_p[k0 : k0 + len(cands)])
             k0 += len(cands)
-            # Trained with wrongly oriented pairs as negatives, the model puts its mass on "no
-            # match" when the worms are not aligned: the orientation it is most willing to match wins.
-            willingness = np.log1p(-np.exp(np.minimum(lps[:, :, m], -1e-6))).mean(axis=1)
+            willingness = _willingness(lps, m)
             if len(lps) == len(ORIENTATIONS):
                 willingness = willingness - self.settings.mirror_penalty * (np.arange(len(lps)) >= N_PROPER)
             best = int(np.argmax(willingness))
-            results.append({"best": best, "willingness": willingness, "log_p": lps[best],
+            results.append({"best": best, "willingness": willingness, "log_p": lps[best], "all_log_p": lps,
                             "moved": cands[best], "affine": np.vstack([np.eye(3), np.zeros((1, 3))])})
         for _ in range(steps):
             for r in results:
@@ -176,11 +178,13 @@ class Identifier:
         return results
 
     def match_pair(
-        self, template: NeuronTable, test: NeuronTable, use_colour: bool = True, orientation: int | None = None
+        self, template: NeuronTable, test: NeuronTable, use_colour: bool = True, orientation: int | None = None,
+        fixed: dict[int, str] | None = None,
     ) -> tuple[np.ndarray, dict]:
         """Probabilities (N_test, M_template + 1) that each test neuron is each template neuron
         (last column: no match), with the chosen orientation in the info dict. ``orientation``
-        skips the search (an index into ``geometry.ORIENTATIONS`` already known to be right)."""
+        skips the search (an index into ``geometry.ORIENTATIONS`` already known to be right);
+        names the user ``fixed`` (row -> name) choose the orientation that agrees with them."""
         a, _, _ = canonical_frame(template.xyz)
         b, _, _ = canonical_frame(test.xyz)
         searched = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:N_PROPER]
@@ -188,6 +192,10 @@ class Identifier:
         candidates = np.einsum("kij,nj->kni", ORIENTATIONS[indices], b)
         tc, sc = self._model_colours(template, [test], use_colour)
         found = self._align(a, [candidates], template_colour=tc, test_colours=sc)[0]
+        agreement = _agreement_with_fixed([found["all_log_p"]], [template], fixed)
+        if agreement is not None and not self.settings.refine_steps:
+            found["best"] = int(np.argmax(agreement))
+            found["log_p"] = found["all_log_p"][found["best"]]
         best, willingness, lp = indices[found["best"]], found["willingness"], found["log_p"]
         lp = self._calibrate(lp)
         if use_colour:
@@ -255,13 +263,50 @@ class Identifier:
         templates: list[NeuronTable],
         use_colour: bool = True,
         fixed: dict[int, str] | None = None,
-        shared_frame: bool = False,
     ) -> Labelling:
-        """Names for every test neuron from one or several labelled templates.
+        """Names for every test neuron from one or several labelled templates, each matched in
+        its own orientation search. ``fixed`` maps rows to names the user decided."""
+        use_colour = self._check(test, templates, use_colour)
+        per_template, infos = [], []
+        for template in templates:
+            probs, info = self.match_pair(template, test, use_colour, fixed=fixed)
+            per_template.append((probs[:, :-1], template.labels))
+            infos.append(info)
+        names, probs = name_probabilities(per_template)
+        info = {"templates": infos, "colour": use_colour}
+        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight)
 
-        ``shared_frame``: the templates lie in one frame (the built-in panel: all drawn from one
-        atlas), so the test's orientation found against the first holds for all of them.
-        """
+    def label_panel(self, test: NeuronTable, panel: Panel, use_colour: bool = True, fixed: dict[int, str] | None = None) -> Labelling:
+        """Names from the built-in panel. The test is placed in the atlas frame once per
+        chirality (:meth:`Atlas.register`); the panel's templates share that frame, so one
+        chirality is chosen for all of them: the one agreeing with the user's ``fixed`` names
+        when there are any, else the one the model is most willing to match (minus the mirror
+        prior fitted on the training labs)."""
+        use_colour = self._check(test, panel.templates, use_colour)
+        placements = panel.atlas.register(test, use_colour)
+        if not self.settings.chirality_search:
+            placements = placements[:1]
+        tc_sc = [self._model_colours(t, [test], use_colour) for t in panel.templates]
+        per_candidate = [  # per template: (placements, N, M + 1)
+            np.stack(self._forward_many(t.xyz, [p.xyz for p in placements], tc, None if sc is None else sc * len(placements)))
+            for t, (tc, sc) in zip(panel.templates, tc_sc)
+        ]
+        willingness = sum(_willingness(lps, len(t)) for lps, t in zip(per_candidate, panel.templates))
+        willingness = willingness - self.settings.mirror_penalty * np.array([p.mirrored for p in placements])
+        agreement = _agreement_with_fixed(per_candidate, panel.templates, fixed)
+        best = int(np.argmax(willingness if agreement is None else agreement))
+        per_template = []
+        for lps, template, (tc, _) in zip(per_candidate, panel.templates, tc_sc):
+            lp = self._calibrate(lps[best])
+            if use_colour:
+                lp = self._fuse_colour(lp, template, test, model_saw_colour=tc is not None)
+            per_template.append((np.exp(lp)[:, :-1], template.labels))
+        names, probs = name_probabilities(per_template)
+        info = {"colour": use_colour, "mirrored": placements[best].mirrored, "willingness": willingness.tolist()}
+        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight)
+
+    def _check(self, test: NeuronTable, templates: list[NeuronTable], use_colour: bool) -> bool:
+        """Refuse a missing model or template; returns whether colour can be used."""
         if self.model is None:
             raise ModelError("no model loaded")
         if not templates:
@@ -270,17 +315,33 @@ class Identifier:
             if any(c in test.colours for c in colour_model.IDENTITY_CHANNELS):
                 warn("no colour channel in common with the template(s): identifying by position only")
             use_colour = False
-        per_template, infos = [], []
-        orientation = None
-        for template in templates:
-            probs, info = self.match_pair(template, test, use_colour, orientation)
-            if shared_frame:
-                orientation = info["orientation"]
-            per_template.append((probs[:, :-1], template.labels))
-            infos.append(info)
-        names, probs = name_probabilities(per_template)
-        info = {"templates": infos, "colour": use_colour}
-        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight)
+        return use_colour
+
+
+def _willingness(log_ps: np.ndarray, m: int) -> np.ndarray:
+    """Per candidate placement (K, N, M + 1): mean log-probability of *having* a match. Trained
+    with wrongly oriented pairs as negatives, the model puts its mass on "no match" when the
+    worms are not aligned, so the placement it is most willing to match is the likeliest."""
+    return np.log1p(-np.exp(np.minimum(log_ps[:, :, m], -1e-6))).mean(axis=1)
+
+
+def _agreement_with_fixed(per_candidate, templates: list[NeuronTable], fixed: dict[int, str] | None) -> np.ndarray | None:
+    """Per candidate placement: summed log-probability of the names the user fixed (over
+    templates); None when no fixed name is in any template. One confirmed left/right neuron is
+    enough to settle a chirality that positions and colours cannot (bilateral symmetry)."""
+    if not fixed:
+        return None
+    total, used = None, False
+    for lps, template in zip(per_candidate, templates):
+        index = {n: i for i, n in enumerate(template.labels) if n}
+        rows = [(j, index[n]) for j, n in fixed.items() if n in index]
+        if not rows:
+            continue
+        j, i = np.array(rows).T
+        score = np.array([lp[j, i].sum() for lp in lps])
+        total = score if total is None else total + score
+        used = True
+    return total if used else None
 
 
 _DEFAULT: dict = {}
@@ -306,9 +367,9 @@ def label_neurons(
     from .reference import load_panel
 
     identifier = identifier or default_identifier()
-    panel = not templates
-    templates = templates if templates else load_panel()
+    if not templates:
+        return identifier.label_panel(test, load_panel(), use_colour=use_colour, fixed=fixed)
     for t in templates:
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron")
-    return identifier.label(test, templates, use_colour=use_colour, fixed=fixed, shared_frame=panel)
+    return identifier.label(test, templates, use_colour=use_colour, fixed=fixed)
