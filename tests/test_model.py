@@ -155,6 +155,6 @@ def test_a_fixed_name_settles_the_chirality():
     for table, truth in [(worm, False), (mirrored, True)]:
         assert ident.label_panel(table, panel, use_colour=False, fixed=fixed).info["mirrored"] == truth
     settled = right(ident.label_panel(mirrored, panel, use_colour=False, fixed=fixed))
-    ident.settings.chirality_search = False  # the proper placement only: left and right swapped
+    ident.settings.chirality = "same"  # the atlas's handedness forced: left and right swapped
     swapped = right(ident.label_panel(mirrored, panel, use_colour=False, fixed=fixed))
     assert settled > swapped + 0.15, (settled, swapped)

@@ -29,10 +29,6 @@ N_PROPER = len(_PROPER)
 FLOOR_FLIPS = np.array([np.eye(3), _HEAD_TAIL, _roll(2), _HEAD_TAIL @ _roll(2)])
 
 
-def is_mirrored(index: int) -> bool:
-    return index >= N_PROPER
-
-
 def canonical_frame(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rotate XY so that the principal axis is x, then centre on the per-axis median.
 

@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from .reference import Panel
 
 WEIGHTS_NAME = "fdlc_model"
+CHIRALITIES = ("auto", "same", "mirrored")
 
 
 def shipped_weights() -> Path:
@@ -41,7 +42,10 @@ class InferenceSettings:
     colour_weight: float = 1.0  # λ: exponent of the colour likelihood ratio
     colour_sigma: float = 0.6  # width of the colour likelihood in normal-score units
     temperature: float = 1.0  # divides the log-probabilities (calibration, fitted on training labs)
-    chirality_search: bool = True  # also try the z-mirrored recording convention
+    # Handedness of the test relative to the template (or the atlas): "auto" tries both, "same"
+    # assumes the template's, "mirrored" the other (a z axis flipped by the acquisition).
+    # Positions and colours barely tell (bilateral symmetry); a user who knows the microscope does.
+    chirality: str = "auto"
     # Prior against the mirrored convention: a bilaterally symmetric head matches almost as well
     # mirrored, and most recordings are not mirrored; fitted on training labs (train.calibrate).
     mirror_penalty: float = 0.0
@@ -52,8 +56,22 @@ class InferenceSettings:
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "InferenceSettings":
-        known = {k: v for k, v in (d or {}).items() if k in cls.__dataclass_fields__}
+        d = dict(d or {})
+        if d.pop("chirality_search", True) is False:  # older model cards
+            d.setdefault("chirality", "same")
+        known = {k: v for k, v in d.items() if k in cls.__dataclass_fields__}
         return cls(**known)
+
+    def __post_init__(self):
+        if self.chirality not in CHIRALITIES:
+            raise FdlcError(f"unknown chirality '{self.chirality}' (use {', '.join(CHIRALITIES)})")
+
+    def orientation_indices(self) -> list[int]:
+        """Indices into ``geometry.ORIENTATIONS`` that the search tries."""
+        every = range(len(ORIENTATIONS))
+        if self.chirality == "auto":
+            return list(every)
+        return [k for k in every if (k >= N_PROPER) == (self.chirality == "mirrored")]
 
 
 class Identifier:
@@ -80,6 +98,12 @@ class Identifier:
         model = load_model(path)
         meta = json.loads(path.with_suffix(".json").read_text())
         return cls(model, InferenceSettings.from_dict(meta.get("inference")), device)
+
+    def with_settings(self, **changes) -> "Identifier":
+        """The same model with some inference settings changed (the original is left alone)."""
+        from dataclasses import replace
+
+        return Identifier(self.model, replace(self.settings, **changes), self.device)
 
     # ------------------------------------------------------------------------------------------
     def _forward(self, template_xyz: np.ndarray, test_batch: np.ndarray) -> np.ndarray:
@@ -187,8 +211,7 @@ class Identifier:
         names the user ``fixed`` (row -> name) choose the orientation that agrees with them."""
         a, _, _ = canonical_frame(template.xyz)
         b, _, _ = canonical_frame(test.xyz)
-        searched = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:N_PROPER]
-        indices = list(range(len(searched))) if orientation is None else [orientation]
+        indices = self.settings.orientation_indices() if orientation is None else [orientation]
         candidates = np.einsum("kij,nj->kni", ORIENTATIONS[indices], b)
         tc, sc = self._model_colours(template, [test], use_colour)
         found = self._align(a, [candidates], template_colour=tc, test_colours=sc)[0]
@@ -207,14 +230,14 @@ class Identifier:
         """:meth:`match_pair` for many tests against one template, batched through the model
         (same answers; many volumes per second instead of one forward pass per volume)."""
         a, _, _ = canonical_frame(template.xyz)
-        orientations = ORIENTATIONS if self.settings.chirality_search else ORIENTATIONS[:N_PROPER]
-        starts = [np.einsum("kij,nj->kni", orientations, canonical_frame(t.xyz)[0]) for t in tests]
+        indices = self.settings.orientation_indices()
+        starts = [np.einsum("kij,nj->kni", ORIENTATIONS[indices], canonical_frame(t.xyz)[0]) for t in tests]
         out = []
         tc, sc = self._model_colours(template, tests, use_colour)
         for test, found in zip(tests, self._align(a, starts, template_colour=tc, test_colours=sc)):
             lp = self._calibrate(found["log_p"])
             lp = self._fuse_colour(lp, template, test, model_saw_colour=tc is not None) if use_colour else lp
-            best = found["best"]
+            best = indices[found["best"]]
             out.append((np.exp(lp), {"orientation": best, "mirrored": best >= N_PROPER, "willingness": found["willingness"].tolist()}))
         return out
 
@@ -284,8 +307,8 @@ class Identifier:
         prior fitted on the training labs)."""
         use_colour = self._check(test, panel.templates, use_colour)
         placements = panel.atlas.register(test, use_colour)
-        if not self.settings.chirality_search:
-            placements = placements[:1]
+        if self.settings.chirality != "auto":
+            placements = [p for p in placements if p.mirrored == (self.settings.chirality == "mirrored")]
         tc_sc = [self._model_colours(t, [test], use_colour) for t in panel.templates]
         per_candidate = [  # per template: (placements, N, M + 1)
             np.stack(self._forward_many(t.xyz, [p.xyz for p in placements], tc, None if sc is None else sc * len(placements)))

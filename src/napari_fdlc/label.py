@@ -60,6 +60,7 @@ def label_files(
     top_k: int = 3,
     method: str = "fdlc",
     weights: str | None = None,
+    chirality: str = "auto",
 ) -> list[Path]:
     """Label each test table and write one CSV per test. Returns the paths written."""
     if top_k < 1:
@@ -80,6 +81,8 @@ def label_files(
         from .reference import load_panel
 
         identifier = Identifier.load(weights) if weights else default_identifier()
+        if chirality != identifier.settings.chirality:
+            identifier = identifier.with_settings(chirality=chirality)
         if not template_tables:
             load_panel()  # refuse a missing panel before any work
         results = [label_neurons(t, template_tables or None, use_colour, identifier=identifier) for t in test_tables]

@@ -43,7 +43,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import FdlcError, TableError
-from .geometry import N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, fit_affine
+from .geometry import ORIENTATIONS, apply_affine, canonical_frame, fit_affine
 from .match import assign
 from .simulate import bend
 from .table import COORDS, NeuronTable, read_table
@@ -291,7 +291,7 @@ def _model_colours(identifier, ref: _Reference, volumes: list[NeuronTable], s: T
 
 def _full_search(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings) -> list[tuple]:
     """(log p, placement) of each volume in the best orientation of the full search (no refinement)."""
-    orientations = ORIENTATIONS if identifier.settings.chirality_search else ORIENTATIONS[:N_PROPER]
+    orientations = ORIENTATIONS[identifier.settings.orientation_indices()]
     starts = [np.einsum("kij,nj->kni", orientations, canonical_frame(v.xyz)[0]) for v in volumes]
     tc, sc = _model_colours(identifier, ref, volumes, s)
     extra = {} if tc is None else {"template_colour": tc, "test_colours": sc}
