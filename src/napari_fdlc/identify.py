@@ -52,6 +52,8 @@ class InferenceSettings:
     # Late colour fusion when the model got no colour input (only some of R, G, B shared):
     # weight 1 took a position-only model from 18 to 32 % top-1 on validation pairs (stage 1).
     fallback_colour_weight: float = 1.0
+    chirality_doubt: float = 0.0  # panel: weight of the other chirality's answer
+    panel_temperature: float = 1.0  # panel: on the averaged answer (fitted on training labs)
     no_match_weight: float = 0.2  # see match.assign
 
     @classmethod
@@ -318,13 +320,21 @@ class Identifier:
         willingness = willingness - self.settings.mirror_penalty * np.array([p.mirrored for p in placements])
         agreement = _agreement_with_fixed(per_candidate, panel.templates, fixed)
         best = int(np.argmax(willingness if agreement is None else agreement))
+        # The other chirality keeps some weight (none once a fixed name decided): its answer is
+        # mostly the same names with left and right swapped, so the doubt lands on the partner.
+        doubt = self.settings.chirality_doubt if agreement is None and len(placements) == 2 else 0.0
+        weights = {best: 1.0 - doubt, 1 - best: doubt} if doubt else {best: 1.0}
         per_template = []
         for lps, template, (tc, _) in zip(per_candidate, panel.templates, tc_sc):
-            lp = self._calibrate(lps[best])
-            if use_colour:
-                lp = self._fuse_colour(lp, template, test, model_saw_colour=tc is not None)
-            per_template.append((np.exp(lp)[:, :-1], template.labels))
+            probs = 0.0
+            for k, w in weights.items():
+                lp = self._calibrate(lps[k])
+                if use_colour:
+                    lp = self._fuse_colour(lp, template, test, model_saw_colour=tc is not None)
+                probs = probs + w * np.exp(lp)
+            per_template.append((probs[:, :-1], template.labels))
         names, probs = name_probabilities(per_template)
+        probs = _sharpen(probs, self.settings.panel_temperature)
         info = {"colour": use_colour, "mirrored": placements[best].mirrored, "willingness": willingness.tolist()}
         return make_labelling(names, probs, fixed, info, self.settings.no_match_weight)
 
@@ -339,6 +349,17 @@ class Identifier:
                 warn("no colour channel in common with the template(s): identifying by position only")
             use_colour = False
         return use_colour
+
+
+def _sharpen(probs: np.ndarray, temperature: float) -> np.ndarray:
+    """``probs`` (N, names; the rest of each row is "no match") raised to 1/temperature and
+    renormalised with the no-match share. Averaging five templates' answers leaves the panel
+    under-confident; a temperature fitted on the training labs undoes it."""
+    if temperature == 1.0:
+        return probs
+    full = np.hstack([probs, np.clip(1 - probs.sum(axis=1, keepdims=True), 0, None)])
+    full = np.maximum(full, 1e-300) ** (1 / temperature)
+    return (full / full.sum(axis=1, keepdims=True))[:, :-1]
 
 
 def _willingness(log_ps: np.ndarray, m: int) -> np.ndarray:

@@ -372,7 +372,8 @@ def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, extra:
         val_pairs = validation_pairs(val_worms, cfg.val_pairs_per_lab, np.random.default_rng(cfg.seed + 1))
     out = Path(cfg.out)
     own_labs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
-    settings = calibrate(Identifier.load(out, cfg.device), own_labs, log)
+    settings = calibrate(Identifier.load(out, cfg.device), own_labs, log,
+                         panel_tests=_panel_tests(load_corpus(cfg.corpus), own_labs, cfg.train_labs))
     meta = json.loads(out.with_suffix(".json").read_text())
     meta.update(extra or {})
     meta.update(inference=settings, calibration_minutes=round((time.time() - start) / 60, 1))
@@ -381,12 +382,27 @@ def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, extra:
     return settings
 
 
-def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
+def _panel_tests(corpus: list[Worm], val_pairs: dict[str, list], train_labs) -> dict[str, tuple]:
+    """Per training lab: the built-in panel rebuilt from the *other* training labs' worms, and
+    that lab's validation worms to identify with it (as the panel protocol scores a new lab)."""
+    from .reference import build_atlas, make_panel
+
+    out = {}
+    for lab, pairs in val_pairs.items():
+        others = [w for w in corpus if w.lab in train_labs and w.lab != lab]
+        tests = list({id(t): t for pair in pairs for t in pair}.values())
+        if others and tests:
+            out[lab] = (make_panel(build_atlas(others)), tests)
+    return out
+
+
+def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: dict | None = None) -> dict:
     """Fit the inference settings that are not learned by gradient descent, on validation
     pairs of the *training* labs: the prior against mirrored recordings and the weight of
     leaving a neuron unnamed (top-1, position only),
     the colour fusion weight (top-1 with colour), then the temperature that minimises the
-    expected calibration error of ``auto_conf``."""
+    expected calibration error of ``auto_conf``. With ``panel_tests`` (see _panel_tests), the
+    panel's own temperature and chirality doubt, by the same criterion."""
     from .evaluate import Scores
 
     # Every setting fitted here acts after the model's forward passes: compute those once.
@@ -424,5 +440,21 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print) -> dict:
     # lowest expected calibration error, position only and with colour
     choose("temperature", (0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.5, 2.0),
            lambda: -np.mean([run(c).summary()["ece"] for c in (False, True)]))
+
+    def run_panel(use_colour):
+        scores = Scores()
+        for panel, tests in panel_tests.values():
+            for test in tests:
+                scores.add(identifier.label_panel(test, panel, use_colour=use_colour), test, panel.names)
+        return scores
+
+    if panel_tests:  # the two interact: a joint grid
+        grid = [(d, t) for d in (0.0, 0.15, 0.3) for t in (0.25, 0.35, 0.5, 0.7, 1.0, 1.4)]
+        results = []
+        for settings.chirality_doubt, settings.panel_temperature in grid:
+            results.append(np.mean([run_panel(c).summary()["ece"] for c in (False, True)]))
+            log(f"calibrate: chirality_doubt {settings.chirality_doubt}, panel_temperature "
+                f"{settings.panel_temperature}: ECE {results[-1]:.3f}")
+        settings.chirality_doubt, settings.panel_temperature = grid[int(np.argmin(results))]
     identifier._forward_many = forward
     return asdict(settings)
