@@ -1,14 +1,16 @@
 """End to end: render a corpus worm as a NeuroPAL stack, segment it, name the detected nuclei
 against another worm of its lab — and compare with naming the worm's true positions.
 
-    python benchmarks/identify_from_images.py [--worms-per-lab 2] [--corpus PATH]
+    python benchmarks/identify_from_images.py [--worms-per-lab 2] [--protocol pairs|panel] [--corpus PATH]
 
 For each test worm: the renderer (napari_fdlc.render, realistic noise) makes the stack;
 segment_stack finds the nuclei and reads their colours; fdlc (with colour) names them against a
 labelled template (the next worm of the same lab). Detections are matched one-to-one to true
 neurons within 1.5 µm; accuracy counts named true neurons whose name the template has (a missed
 nucleus counts as wrong). The same test's true table (positions and rendered colours) named the
-same way gives the "true positions" figure. The corpus is read in place.
+same way gives the "true positions" figure. With ``--protocol panel`` the names come from the
+built-in panel instead (what ``fdlc label`` does without ``--template``), rebuilt from an atlas
+that excludes the test's lab. The corpus is read in place.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from scipy.spatial.distance import cdist  # noqa: E402
 
 from napari_fdlc.corpus import LABS, load_corpus  # noqa: E402
 from napari_fdlc.identify import Identifier  # noqa: E402
+from napari_fdlc.reference import build_atlas, make_panel  # noqa: E402
 from napari_fdlc.render import render_stack  # noqa: E402
 from napari_fdlc.segment import segment_stack  # noqa: E402
 
@@ -41,12 +44,21 @@ def main(argv=None) -> int:
     ap.add_argument("--labs", nargs="+", default=list(LABS))
     ap.add_argument("--worms-per-lab", type=int, default=2)
     ap.add_argument("--weights", default=None)
+    ap.add_argument("--protocol", choices=("pairs", "panel"), default="pairs")
     args = ap.parse_args(argv)
     identifier = Identifier.load(args.weights)
-    worms = load_corpus(args.corpus, args.labs)
+    worms = load_corpus(args.corpus)
     rows = []
     for lab in args.labs:
         tables = [w.table for w in worms if w.lab == lab]
+        if args.protocol == "panel":
+            panel = make_panel(build_atlas([w for w in worms if w.lab != lab]))
+
+            def name(table, template):
+                return identifier.label_panel(table, panel, use_colour=True)
+        else:
+            def name(table, template):
+                return identifier.label(table, [template], use_colour=True)
         hit_img = n_img = hit_true = n_true = found_total = truth_total = 0
         seconds = []
         for k in range(min(args.worms_per_lab, len(tables) - 1)):
@@ -55,13 +67,13 @@ def main(argv=None) -> int:
             start = time.perf_counter()
             found = segment_stack(stack)
             seconds.append(time.perf_counter() - start)
-            vocabulary = set(template.names)
+            vocabulary = panel.names if args.protocol == "panel" else set(template.names)
             # from true positions (and the rendered colours)
-            result = identifier.label(truth, [template], use_colour=True)
+            result = name(truth, template)
             h, n = accuracy(result.auto_id, truth.labels, vocabulary)
             hit_true, n_true = hit_true + h, n_true + n
             # from the image: each true neuron gets the name given to its detection (if any)
-            result = identifier.label(found, [template], use_colour=True)
+            result = name(found, template)
             d = cdist(truth.xyz, found.xyz)
             r, c = linear_sum_assignment(d)
             given = np.full(len(truth), "", dtype=object)
@@ -73,7 +85,8 @@ def main(argv=None) -> int:
             truth_total += len(truth)
         rows.append((lab, hit_true / max(n_true, 1), hit_img / max(n_img, 1), found_total / max(truth_total, 1), np.median(seconds)))
         print(f"{lab}: true {rows[-1][1]:.3f} image {rows[-1][2]:.3f} recall {rows[-1][3]:.3f}", file=sys.stderr, flush=True)
-    print(f"\nfdlc with colour, template = another worm of the lab, {args.worms_per_lab} test worms per lab.\n")
+    how = "the built-in panel (atlas without the lab)" if args.protocol == "panel" else "template = another worm of the lab"
+    print(f"\nfdlc with colour, {how}, {args.worms_per_lab} test worms per lab.\n")
     print("| lab | top-1 from true positions | top-1 from the image | difference (points) | nuclei found | segmentation s |")
     print("|---|---|---|---|---|---|")
     for lab, t, i, rec, s in rows:

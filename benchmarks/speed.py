@@ -9,7 +9,8 @@ volumes per second when many volumes are given at once. Configurations:
 * full, 1 template: orientation and chirality search (every orientation of
   ``geometry.ORIENTATIONS``) + affine refinement +
   colour, what ``fdlc label --template T`` does, i.e. the configuration of the accuracy figures;
-* full, panel: the same against the built-in reference panel (5 templates), what Auto-label does;
+* full, panel: the built-in reference panel, what Auto-label does: the test placed in the atlas
+  frame (registration, both chiralities), then 5 templates × 2 chiralities through the model;
 * track: ``fdlc track`` defaults (full search on the first volume only; every later volume placed
   by the warp of the one before, one model pass, assignment); latency = one volume at a time
   (chunk 1, what a live recording needs), batched = chunk 16; the first volume's search is
@@ -18,7 +19,8 @@ volumes per second when many volumes are given at once. Configurations:
 
 Peak memory: Python/numpy allocations (tracemalloc) during one run of each configuration, and
 the process's peak resident size at the end (``ru_maxrss``; includes torch itself). With CUDA,
-the fdlc rows are repeated on the GPU. Prints a markdown table.
+the fdlc rows are repeated on the GPU. Then the Auto-label click on the bundled sample
+(segmentation, then naming with the panel). Prints a markdown table.
 """
 
 from __future__ import annotations
@@ -157,6 +159,20 @@ def main(argv=None) -> int:
             if device == "cpu":
                 row["peak_mb"] = _peak_mb(one)
             print(f"  {device} {name}: {wall:.1f} ms/volume, {row[f'{device}_rate']:.0f} volumes/s", file=sys.stderr, flush=True)
+    # The Auto-label click on the bundled sample: segmentation, then naming with the panel (what
+    # the widget runs in its worker); the issue's target is on the naming part.
+    from napari_fdlc.identify import label_neurons
+    from napari_fdlc.sample import load_sample
+    from napari_fdlc.segment import segment_stack
+
+    stack, _ = load_sample()
+    t0 = time.perf_counter()
+    found = segment_stack(stack)
+    segment_ms = (time.perf_counter() - t0) * 1e3
+    ident = Identifier.load(weights)
+    sample_ms, _ = _median_ms(lambda: label_neurons(found, identifier=ident).candidates(3), 5)
+    print(f"  Auto-label on the sample: segmentation {segment_ms:.0f} ms, naming {sample_ms:.0f} ms", file=sys.stderr, flush=True)
+
     wall, cpu = _median_ms(cpd_one, args.cpd_repeats)
     cpd_name = f"CPD (pycpd, {len(ORIENTATIONS)} orientations)"
     rows[cpd_name] = {"cpu_ms": wall, "cpu_cpu_ms": cpu, "cpu_rate": 1000.0 / wall, "peak_mb": _peak_mb(cpd_one)}
@@ -183,6 +199,8 @@ def main(argv=None) -> int:
             line += f" {r['cuda_ms']:.1f} | {r['cuda_rate']:.0f} |" if "cuda_ms" in r else " – | – |"
         print(line)
     print()
+    print(f"Auto-label on the bundled sample ({len(found)} neurons found): segmentation {segment_ms:.0f} ms, "
+          f"then naming with the panel {sample_ms:.0f} ms (median of 5)")
     print(f"process peak resident memory: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB (torch included)")
     return 0
 
