@@ -46,7 +46,7 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
                     synthetic_pairs=40, with_cpd=True, out: Path | None = None) -> str:
     from .baselines import cpd_match, floor_match
     from .corpus import LABS, load_corpus
-    from .evaluate import Scores, baseline_labelling, coverage_curve, pair_list, reliability
+    from .evaluate import Scores, baseline_labelling, coverage_curve, mirrored_relative_to, pair_list, reliability
     from .identify import Identifier
     from .reference import build_atlas, make_panel
     from .simulate import simulate_worm
@@ -94,6 +94,14 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
                 scores.add(identifier.label_panel(test, panel, use_colour=use_colour), test, vocabulary, time.perf_counter() - t0)
             rows.append((lab, "panel", "fdlc", "colour" if use_colour else "position", scores.summary()))
             _log(f"{lab} panel colour={use_colour}: {rows[-1][-1]}")
+        # What a user who knows the microscope's handedness gets (--chirality same|mirrored):
+        # each worm's chirality relative to the atlas, read from its names.
+        scores = Scores()
+        for test in tables[:panel_worms_per_lab]:
+            told = identifier.with_settings(chirality="mirrored" if mirrored_relative_to(panel.atlas, test) else "same")
+            scores.add(told.label_panel(test, panel, use_colour=True), test, vocabulary)
+        rows.append((lab, "panel", "fdlc", "colour, chirality given", scores.summary()))
+        _log(f"{lab} panel colour, chirality given: {rows[-1][-1]}")
     # Held-out synthetic pairs: a worm and its simulated copy (published simulator magnitudes).
     rng = np.random.default_rng(0)
     synth = Scores()

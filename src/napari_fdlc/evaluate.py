@@ -90,3 +90,15 @@ def pair_list(tables: list[NeuronTable], max_pairs: int | None, seed: int = 0) -
         keep = np.random.default_rng(seed).choice(len(pairs), max_pairs, replace=False)
         pairs = [pairs[k] for k in sorted(keep)]
     return pairs
+
+
+def mirrored_relative_to(atlas, worm: NeuronTable) -> bool:
+    """Whether a labelled worm has the other handedness than the atlas (names give it: the best
+    mirrored fit of its named neurons onto the atlas means is better than the best proper one)."""
+    from .geometry import N_PROPER, canonical_frame, true_orientation
+
+    index = {n: i for i, n in enumerate(atlas.names)}
+    pairs = np.array([(index[n], j) for j, n in enumerate(worm.labels) if n in index])
+    if len(pairs) < 4:
+        return False
+    return true_orientation(atlas.mean, canonical_frame(worm.xyz)[0], pairs) >= N_PROPER
