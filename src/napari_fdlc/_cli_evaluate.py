@@ -114,8 +114,9 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
 
     lines = ["| lab | protocol | method | input | top-1 | top-3 | ECE | neurons | ms / volume |", "|---|---|---|---|---|---|---|---|---|"]
     for lab, protocol, method, inp, s in rows:
+        ms = "–" if np.isnan(s["ms_per_volume"]) else f"{s['ms_per_volume']:.0f}"
         lines.append(f"| {lab} | {protocol} | {method} | {inp} | {100 * s['top1']:.1f} | {100 * s['top3']:.1f} | "
-                     f"{s['ece']:.3f} | {s['n']} | {s['ms_per_volume']:.0f} |")
+                     f"{s['ece']:.3f} | {s['n']} | {ms} |")
     lines.append("")
     if synthetic_pairs:
         lines.append(f"Synthetic pairs (simulator defaults = published magnitudes, {synthetic_pairs} pairs, position only): "
