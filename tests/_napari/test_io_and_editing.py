@@ -217,3 +217,22 @@ def test_gui_stays_responsive_while_labelling(labelled_viewer, identifier):
     gaps = np.diff([start] + ticks)
     assert len(ticks) > 20 and gaps.max() < 1.0  # the event loop kept running
     assert widget.progress_bar.value() == 100
+
+
+def test_handedness_choice_reaches_the_model(labelled_viewer, monkeypatch):
+    """The Handedness box: Auto-label and Re-label name the worm with the chosen chirality."""
+    import napari_fdlc.identify as identify
+
+    viewer, widget = labelled_viewer
+    seen = []
+    original = identify.label_neurons
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["identifier"].settings.chirality)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(identify, "label_neurons", spy)
+    widget.auto_label()
+    widget.chirality_combo.setCurrentIndex(widget.chirality_combo.findData("mirrored"))
+    widget.relabel()
+    assert seen == ["auto", "mirrored"] and widget.last_error is None

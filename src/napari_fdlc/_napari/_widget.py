@@ -185,6 +185,13 @@ class AutoLabelWidget(QWidget):
         self.colour_check = QCheckBox("use NeuroPAL colour")
         self.colour_check.setChecked(True)
         form.addRow("", self.colour_check)
+        self.chirality_combo = QComboBox()
+        for value, text in CHIRALITY_CHOICES:
+            self.chirality_combo.addItem(text, value)
+        self.chirality_combo.setToolTip(
+            "a recording mirrored by its acquisition (flipped z) swaps every left/right pair, and the\n"
+            "image cannot tell: set it if you know your microscope, or fix one left/right neuron and Re-label")
+        form.addRow("Handedness", self.chirality_combo)
         layout.addWidget(box)
 
         row = QHBoxLayout()
@@ -610,7 +617,7 @@ class AutoLabelWidget(QWidget):
         templates, template_text = self._templates()
         use_colour = self.colour_check.isChecked()
         diameter = float(self.diameter_spin.value())
-        identifier = self.identifier
+        identifier, chirality = self.identifier, self.chirality_combo.currentData()
         stack = self._make_stack(images) if images else None
         image_key = stack.source if stack is not None else None
         base_name = None
@@ -668,7 +675,8 @@ class AutoLabelWidget(QWidget):
                 carried = own_decisions
             fixed = {i: d.name for i, d in carried.items()}
             signals.progress.emit(0.65, f"naming {len(table)} neurons…")
-            labelling = label_neurons(table, templates, use_colour=use_colour, fixed=fixed or None, identifier=identifier)
+            labelling = label_neurons(table, templates, use_colour=use_colour, fixed=fixed or None,
+                                      identifier=_with_chirality(identifier, chirality))
             signals.progress.emit(1.0, "done")
             return table, labelling, carried
 
@@ -695,7 +703,7 @@ class AutoLabelWidget(QWidget):
         session = self._need_session()
         templates, template_text = self._templates()
         use_colour = self.colour_check.isChecked()
-        identifier = self.identifier
+        identifier, chirality = self.identifier, self.chirality_combo.currentData()
         table = session.table
         fixed = session.fixed()
         signals = self._signals
@@ -704,7 +712,8 @@ class AutoLabelWidget(QWidget):
             from ..identify import label_neurons
 
             signals.progress.emit(0.1, f"re-labelling with {len(fixed)} fixed name(s)…")
-            lab = label_neurons(table, templates, use_colour=use_colour, fixed=fixed or None, identifier=identifier)
+            lab = label_neurons(table, templates, use_colour=use_colour, fixed=fixed or None,
+                                identifier=_with_chirality(identifier, chirality))
             signals.progress.emit(1.0, "done")
             return lab
 
@@ -1328,6 +1337,20 @@ def _saved_session(image_key: str) -> ReviewSession | None:
     except FdlcError as exc:
         warn(f"earlier decisions not carried over: {exc}")
         return None
+
+
+CHIRALITY_CHOICES = (("auto", "auto"), ("same", "as the template / atlas"), ("mirrored", "mirrored"))
+
+
+def _with_chirality(identifier, chirality: str):
+    """The identifier to use (None: the shipped one) with the handedness the user chose."""
+    from ..identify import default_identifier
+
+    identifier = identifier or default_identifier()
+    settings = getattr(identifier, "settings", None)  # scripts may inject their own matcher
+    if settings is None or settings.chirality == chirality:
+        return identifier
+    return identifier.with_settings(chirality=chirality)
 
 
 def _combo() -> QComboBox:
