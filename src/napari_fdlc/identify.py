@@ -4,6 +4,9 @@ model (positions) ──► orientation search ──► affine refinement ─�
                                                                           │
                                                      match.name_probabilities / assign
 
+With the built-in panel, registration to the atlas (reference.Atlas.register) replaces the
+orientation search: the model then only chooses the chirality (label_panel).
+
 The model is loaded once; :meth:`Identifier.label` may be called for as many tests as needed.
 torch is imported here only when an :class:`Identifier` is made, so ``import napari_fdlc`` and
 napari's plugin discovery stay fast.
@@ -373,19 +376,15 @@ def _agreement_with_fixed(per_candidate, templates: list[NeuronTable], fixed: di
     """Per candidate placement: summed log-probability of the names the user fixed (over
     templates); None when no fixed name is in any template. One confirmed left/right neuron is
     enough to settle a chirality that positions and colours cannot (bilateral symmetry)."""
-    if not fixed:
-        return None
-    total, used = None, False
+    total = None
     for lps, template in zip(per_candidate, templates):
         index = {n: i for i, n in enumerate(template.labels) if n}
-        rows = [(j, index[n]) for j, n in fixed.items() if n in index]
-        if not rows:
-            continue
-        j, i = np.array(rows).T
-        score = np.array([lp[j, i].sum() for lp in lps])
-        total = score if total is None else total + score
-        used = True
-    return total if used else None
+        rows = [(j, index[n]) for j, n in (fixed or {}).items() if n in index]
+        if rows:
+            j, i = np.array(rows).T
+            score = np.array([lp[j, i].sum() for lp in lps])
+            total = score if total is None else total + score
+    return total
 
 
 _DEFAULT: dict = {}
