@@ -22,9 +22,10 @@ worm plus a few worms sampled from its per-name spreads, all in the atlas's fram
 name. A test worm is first placed in that frame by :meth:`Atlas.register`: the atlas is a
 Gaussian mixture (one component per name, its spread plus colour), fitted to the test's
 points by EM from 24 starting poses per chirality. Unlike the 16 right-angle orientations used
-between two worms, this finds any roll about the body axis, and it turned the panel's answers
-from 26 to 35 % top-1 with colour on average over held-out labs (docs/model_card.md). :func:`generate_worm` samples a realistic
-worm from the same statistics — the bundled sample data is made this way.
+between two worms, this finds any roll about the body axis: it took the panel's top-1 with
+colour from 29 to 53 % averaged over the five labs (shipped model, atlas rebuilt without the
+scored lab; docs/accuracy.md). :func:`generate_worm` samples a realistic worm from the same
+statistics — the bundled sample data is made this way.
 """
 
 from __future__ import annotations
