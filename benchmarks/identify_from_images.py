@@ -27,6 +27,7 @@ from scipy.optimize import linear_sum_assignment  # noqa: E402
 from scipy.spatial.distance import cdist  # noqa: E402
 
 from napari_fdlc.corpus import LABS, load_corpus  # noqa: E402
+from napari_fdlc.evaluate import mirrored_relative_to  # noqa: E402
 from napari_fdlc.identify import Identifier  # noqa: E402
 from napari_fdlc.reference import build_atlas, make_panel  # noqa: E402
 from napari_fdlc.render import render_stack  # noqa: E402
@@ -45,20 +46,27 @@ def main(argv=None) -> int:
     ap.add_argument("--worms-per-lab", type=int, default=2)
     ap.add_argument("--weights", default=None)
     ap.add_argument("--protocol", choices=("pairs", "panel"), default="pairs")
+    ap.add_argument("--chirality-given", action="store_true",
+                    help="tell the model each worm's handedness (read from its names), as a user who knows the microscope would")
     args = ap.parse_args(argv)
     identifier = Identifier.load(args.weights)
     worms = load_corpus(args.corpus)
     rows = []
     for lab in args.labs:
         tables = [w.table for w in worms if w.lab == lab]
-        if args.protocol == "panel":
-            panel = make_panel(build_atlas([w for w in worms if w.lab != lab]))
+        atlas = build_atlas([w for w in worms if w.lab != lab])
+        panel = make_panel(atlas)
 
-            def name(table, template):
-                return identifier.label_panel(table, panel, use_colour=True)
-        else:
-            def name(table, template):
-                return identifier.label(table, [template], use_colour=True)
+        def name(table, template, source):
+            told = identifier
+            if args.chirality_given:  # handedness relative to the panel's atlas, or to the template
+                mirrored = mirrored_relative_to(atlas, source)
+                if args.protocol == "pairs":
+                    mirrored = mirrored != mirrored_relative_to(atlas, template)
+                told = identifier.with_settings(chirality="mirrored" if mirrored else "same")
+            if args.protocol == "panel":
+                return told.label_panel(table, panel, use_colour=True)
+            return told.label(table, [template], use_colour=True)
         hit_img = n_img = hit_true = n_true = found_total = truth_total = 0
         seconds = []
         for k in range(min(args.worms_per_lab, len(tables) - 1)):
@@ -69,11 +77,11 @@ def main(argv=None) -> int:
             seconds.append(time.perf_counter() - start)
             vocabulary = panel.names if args.protocol == "panel" else set(template.names)
             # from true positions (and the rendered colours)
-            result = name(truth, template)
+            result = name(truth, template, source)
             h, n = accuracy(result.auto_id, truth.labels, vocabulary)
             hit_true, n_true = hit_true + h, n_true + n
             # from the image: each true neuron gets the name given to its detection (if any)
-            result = name(found, template)
+            result = name(found, template, source)
             d = cdist(truth.xyz, found.xyz)
             r, c = linear_sum_assignment(d)
             given = np.full(len(truth), "", dtype=object)
@@ -86,6 +94,7 @@ def main(argv=None) -> int:
         rows.append((lab, hit_true / max(n_true, 1), hit_img / max(n_img, 1), found_total / max(truth_total, 1), np.median(seconds)))
         print(f"{lab}: true {rows[-1][1]:.3f} image {rows[-1][2]:.3f} recall {rows[-1][3]:.3f}", file=sys.stderr, flush=True)
     how = "the built-in panel (atlas without the lab)" if args.protocol == "panel" else "template = another worm of the lab"
+    how += ", handedness given" if args.chirality_given else ""
     print(f"\nfdlc with colour, {how}, {args.worms_per_lab} test worms per lab.\n")
     print("| lab | top-1 from true positions | top-1 from the image | difference (points) | nuclei found | segmentation s |")
     print("|---|---|---|---|---|---|")
