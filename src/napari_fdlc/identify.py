@@ -55,6 +55,10 @@ class InferenceSettings:
     # Late colour fusion when the model got no colour input (only some of R, G, B shared):
     # weight 1 took a position-only model from 18 to 32 % top-1 on validation pairs (stage 1).
     fallback_colour_weight: float = 1.0
+    # Panel: the prior against a mirrored placement. The model's preference between the two
+    # placements of one worm was measured to be noise, so a large value (always the atlas's
+    # handedness, the corpus majority, unless the user says otherwise) can win the calibration.
+    panel_mirror_penalty: float = 0.0
     chirality_doubt: float = 0.0  # panel: weight of the other chirality's answer
     panel_temperature: float = 1.0  # panel: on the averaged answer (fitted on training labs)
     no_match_weight: float = 0.2  # see match.assign
@@ -308,8 +312,8 @@ class Identifier:
         """Names from the built-in panel. The test is placed in the atlas frame once per
         chirality (:meth:`Atlas.register`); the panel's templates share that frame, so one
         chirality is chosen for all of them: the one agreeing with the user's ``fixed`` names
-        when there are any, else the one the model is most willing to match (minus the mirror
-        prior fitted on the training labs)."""
+        when there are any, else the one the model is most willing to match (minus the panel's
+        mirror prior fitted on the training labs)."""
         use_colour = self._check(test, panel.templates, use_colour)
         placements = panel.atlas.register(test, use_colour)
         if self.settings.chirality != "auto":
@@ -320,7 +324,7 @@ class Identifier:
             for t, (tc, sc) in zip(panel.templates, tc_sc)
         ]
         willingness = sum(_willingness(lps, len(t)) for lps, t in zip(per_candidate, panel.templates))
-        willingness = willingness - self.settings.mirror_penalty * np.array([p.mirrored for p in placements])
+        willingness = willingness - self.settings.panel_mirror_penalty * np.array([p.mirrored for p in placements])
         agreement = _agreement_with_fixed(per_candidate, panel.templates, fixed)
         best = int(np.argmax(willingness if agreement is None else agreement))
         # The other chirality keeps some weight (none once a fixed name decided): its answer is
