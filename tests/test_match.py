@@ -76,3 +76,13 @@ def test_labelling_confidence_and_threshold():
     assert lab.thresholded(0.95) == ["", ""]
     lab = make_labelling(["A", "B"], probs, no_match_weight=0.2)
     assert lab.auto_id == ["A", "B"]
+
+
+def test_assignment_on_one_answer_confidence_from_another():
+    """The panel assigns on its best guess and reports hedged probabilities."""
+    sharp = np.array([[0.9, 0.05], [0.05, 0.9]])
+    hedged = np.array([[0.6, 0.35], [0.35, 0.6]])
+    lab = make_labelling(["AVAL", "AVAR"], hedged, assign_probs=sharp)
+    assert lab.auto_id == ["AVAL", "AVAR"] and np.allclose(lab.auto_conf, [0.6, 0.6])
+    swapped = make_labelling(["AVAL", "AVAR"], hedged, assign_probs=sharp[::-1].copy())
+    assert swapped.auto_id == ["AVAR", "AVAL"] and np.allclose(swapped.auto_conf, [0.35, 0.35])

@@ -329,21 +329,29 @@ class Identifier:
         best = int(np.argmax(willingness if agreement is None else agreement))
         # The other chirality keeps some weight (none once a fixed name decided): its answer is
         # mostly the same names with left and right swapped, so the doubt lands on the partner.
-        doubt = self.settings.chirality_doubt if agreement is None and len(placements) == 2 else 0.0
-        weights = {best: 1.0 - doubt, 1 - best: doubt} if doubt else {best: 1.0}
-        per_template = []
+        answers = []  # per template: probabilities (N, M) of each placement, colour fused
         for lps, template, (tc, _) in zip(per_candidate, panel.templates, tc_sc):
-            probs = 0.0
-            for k, w in weights.items():
-                lp = self._calibrate(lps[k])
+            fused = []
+            for lp in lps:
+                lp = self._calibrate(lp)
                 if use_colour:
                     lp = self._fuse_colour(lp, template, test, model_saw_colour=tc is not None)
-                probs = probs + w * np.exp(lp)
-            per_template.append((probs[:, :-1], template.labels))
-        names, probs = name_probabilities(per_template)
+                fused.append(np.exp(lp)[:, :-1])
+            answers.append(fused)
+        # The names are assigned on the chosen placement's answer. The probabilities reported
+        # keep some weight on the other chirality (none once a fixed name decided: its answer
+        # is mostly the same names with left and right swapped, so the doubt lands on the
+        # partner) and get the panel's temperature; both fitted for calibration.
+        other = 1 - best if agreement is None and len(placements) == 2 else None
+        doubt = self.settings.chirality_doubt if other is not None else 0.0
+        names, chosen = name_probabilities([(a[best], t.labels) for a, t in zip(answers, panel.templates)])
+        probs = chosen
+        if doubt:
+            _, hedge = name_probabilities([(a[other], t.labels) for a, t in zip(answers, panel.templates)])
+            probs = (1 - doubt) * chosen + doubt * hedge
         probs = _sharpen(probs, self.settings.panel_temperature)
         info = {"colour": use_colour, "mirrored": placements[best].mirrored, "willingness": willingness.tolist()}
-        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight)
+        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight, assign_probs=chosen)
 
     def _check(self, test: NeuronTable, templates: list[NeuronTable], use_colour: bool) -> bool:
         """Refuse a missing model or template; returns whether colour can be used."""

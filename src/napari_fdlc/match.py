@@ -108,13 +108,16 @@ def make_labelling(
     fixed: dict[int, str] | None = None,
     info: dict | None = None,
     no_match_weight: float = 1.0,
+    assign_probs: np.ndarray | None = None,
 ) -> Labelling:
     """Assign names and fill a :class:`Labelling`. ``fixed`` maps rows to user-given names;
-    a user name the vocabulary does not know is kept for that row without a column."""
+    a user name the vocabulary does not know is kept for that row without a column.
+    ``assign_probs`` (default ``probs``): what the assignment is made on, when the reported
+    probabilities are hedged (the panel hedges its chirality but assigns on its best guess)."""
     column = {n: i for i, n in enumerate(names)}
     fixed = fixed or {}
     fixed_cols = {row: column[name] for row, name in fixed.items() if name in column}
-    choice = assign(probs, fixed_cols, no_match_weight)
+    choice = assign(probs if assign_probs is None else assign_probs, fixed_cols, no_match_weight)
     auto_id, auto_conf = [], np.zeros(len(probs))
     no_match = np.clip(1.0 - probs.sum(axis=1), 0.0, 1.0)
     for j, col in enumerate(choice):
