@@ -56,8 +56,8 @@ class InferenceSettings:
     # weight 1 took a position-only model from 18 to 32 % top-1 on validation pairs (stage 1).
     fallback_colour_weight: float = 1.0
     # Panel: the prior against a mirrored placement. The model's preference between the two
-    # placements of one worm was measured to be noise, so a large value (always the atlas's
-    # handedness, the corpus majority, unless the user says otherwise) can win the calibration.
+    # placements of one worm was measured to be noise, so the shipped value (1.0, not fitted:
+    # train.PANEL_MIRROR_PRIOR) keeps the atlas's handedness unless the user says otherwise.
     panel_mirror_penalty: float = 0.0
     chirality_doubt: float = 0.0  # panel: weight of the other chirality's answer
     panel_temperature: float = 1.0  # panel: on the averaged answer (fitted on training labs)
