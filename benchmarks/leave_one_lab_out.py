@@ -89,8 +89,12 @@ def main(argv=None) -> int:
         handle.write("# Leave-one-lab-out\n\nMade by `python benchmarks/leave_one_lab_out.py"
                      + (f" --train --minutes {args.minutes:g}" if args.train else "")
                      + (" --recalibrate" if args.recalibrate else "") + "` (see its docstring for the"
-                     " exact commands). Top-1 / top-3 %, each lab scored with the fold model that never saw it"
-                     " (20 pairs within the lab; 8 worms against the panel rebuilt without the lab).\n\n")
+                     " exact commands; how to read it: benchmarks.md). Top-1 / top-3 %, each lab scored with the"
+                     " fold model that never saw it: trained on the other four labs, checkpoint and inference"
+                     " settings chosen on those four only, the panel's atlas rebuilt without the lab"
+                     " (20 pairs within the lab; 8 worms against the panel). Published figures: WormND, panel"
+                     " protocol with colour — fDLC trained without the lab, and the best published method"
+                     " for the lab (CRF_ID retrained on the lab's own data).\n\n")
         handle.write(text)
     print(text)
     return 0
