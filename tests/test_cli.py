@@ -141,3 +141,12 @@ def test_chirality_option_decides_left_and_right(tmp_path, worm, other_worm):
         got = pd.read_csv(out, keep_default_na=False)["auto_id"]
         right[chirality] = np.mean([g == t for g, t in zip(got, worm.labels) if t[-1:] in "LR"])
     assert right["mirrored"] > right["same"] + 0.2, right
+
+
+@pytest.mark.parametrize("args", [["label", "t.csv"], ["label", "t.csv", "--chirality", "left", "--out", "o.csv"], ["nonsense"]])
+def test_usage_mistakes_are_one_line(args, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(args)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "--help" in err

@@ -157,9 +157,16 @@ def _run_atlas(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage mistakes are bad input too: one line on stderr (``--help`` has the usage), exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fdlc", description="Identify and track C. elegans neurons (fDLC).")
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = _Parser(prog="fdlc", description="Identify and track C. elegans neurons (fDLC).")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _label_parser(sub)
     try:
         from . import _cli_segment
