@@ -208,3 +208,21 @@ def test_track_settings_are_checked():
         TrackSettings(chunk=0).check()
     with pytest.raises(FdlcError, match="search"):
         TrackSettings(search="sideways").check()
+
+
+def test_cli_track_chirality_option(tmp_path, worm):
+    """Volumes of a z-mirrored recording, a labelled reference recorded the usual way: told
+    `--chirality mirrored`, the shipped model keeps left and right apart."""
+    folder = tmp_path / "vols"
+    for k in range(2):
+        write_table(NeuronTable((worm.xyz + [k, 0.5 * k, 0]) * [1, 1, -1], worm.colours), folder / f"t{k}.csv")
+    ref = tmp_path / "ref.csv"
+    write_table(worm, ref)
+    right = {}
+    for chirality in ("same", "mirrored"):
+        out = tmp_path / f"{chirality}.csv"
+        assert main(["track", str(folder), "--reference", str(ref), "--chirality", chirality, "--quiet", "--out", str(out)]) == 0
+        names = pd.read_csv(out, keep_default_na=False)["name"].to_numpy()
+        paired = np.tile([n[-1:] in ("L", "R") for n in worm.labels], 2)
+        right[chirality] = (names == np.tile(worm.labels, 2))[paired].mean()
+    assert right["mirrored"] > 0.9 and right["mirrored"] > right["same"] + 0.3, right

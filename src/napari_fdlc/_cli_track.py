@@ -37,6 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=("fdlc", "cpd", "geometry"), default="fdlc",
                         help="fdlc (default), cpd (classical baseline) or geometry (the warp chain alone, no model)")
     parser.add_argument("--weights", help="model weights (path without suffix); default: the shipped model")
+    parser.add_argument("--chirality", choices=("auto", "same", "mirrored"), default="auto",
+                        help="handedness of the volumes relative to the reference(s), as for fdlc label")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads for the model (default: torch's)")
     parser.add_argument("--out", required=True, help="output CSV")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
@@ -72,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
 
             torch.set_num_threads(args.threads)
         identifier = Identifier.load(args.weights) if args.weights else default_identifier()
+        if args.chirality != identifier.settings.chirality:
+            identifier = identifier.with_settings(chirality=args.chirality)
     start = time.perf_counter()
 
     def progress(done: int, total: int) -> None:
