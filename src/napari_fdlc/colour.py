@@ -31,7 +31,7 @@ def normal_scores(table: NeuronTable, channels: tuple[str, ...]) -> np.ndarray:
     n = len(values)
     if n == 0 or not channels:
         return np.zeros((n, len(channels)))
-    ranks = np.column_stack([rankdata(values[:, c]) for c in range(values.shape[1])])
+    ranks = rankdata(values, axis=0)  # all channels in one call (its overhead dominates here)
     return ndtri((ranks - 0.5) / n)
 
 
