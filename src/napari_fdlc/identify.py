@@ -115,10 +115,6 @@ class Identifier:
         return Identifier(self.model, replace(self.settings, **changes), self.device)
 
     # ------------------------------------------------------------------------------------------
-    def _forward(self, template_xyz: np.ndarray, test_batch: np.ndarray) -> np.ndarray:
-        """log p for a batch of oriented copies of the test (K, N, 3) against one template."""
-        return np.stack(self._forward_many(template_xyz, list(test_batch)))
-
     def _forward_many(
         self,
         template_xyz: np.ndarray,
@@ -228,12 +224,7 @@ class Identifier:
         if agreement is not None and not self.settings.refine_steps:
             found["best"] = int(np.argmax(agreement))
             found["log_p"] = found["all_log_p"][found["best"]]
-        best, willingness, lp = indices[found["best"]], found["willingness"], found["log_p"]
-        lp = self._calibrate(lp)
-        if use_colour:
-            lp = self._fuse_colour(lp, template, test, model_saw_colour=tc is not None)
-        info = {"orientation": best, "mirrored": best >= N_PROPER, "willingness": willingness.tolist()}
-        return np.exp(lp), info
+        return self._pair_answer(found, indices, template, test, use_colour, tc is not None)
 
     def match_many(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True) -> list[tuple[np.ndarray, dict]]:
         """:meth:`match_pair` for many tests against one template, batched through the model
@@ -241,14 +232,22 @@ class Identifier:
         a, _, _ = canonical_frame(template.xyz)
         indices = self.settings.orientation_indices()
         starts = [np.einsum("kij,nj->kni", ORIENTATIONS[indices], canonical_frame(t.xyz)[0]) for t in tests]
-        out = []
         tc, sc = self._model_colours(template, tests, use_colour)
-        for test, found in zip(tests, self._align(a, starts, template_colour=tc, test_colours=sc)):
-            lp = self._calibrate(found["log_p"])
-            lp = self._fuse_colour(lp, template, test, model_saw_colour=tc is not None) if use_colour else lp
-            best = indices[found["best"]]
-            out.append((np.exp(lp), {"orientation": best, "mirrored": best >= N_PROPER, "willingness": found["willingness"].tolist()}))
-        return out
+        found = self._align(a, starts, template_colour=tc, test_colours=sc)
+        return [self._pair_answer(f, indices, template, test, use_colour, tc is not None) for test, f in zip(tests, found)]
+
+    def _pair_answer(self, found: dict, indices: list[int], template, test, use_colour: bool, model_saw_colour: bool):
+        """(probabilities (N, M + 1), info) of the orientation ``_align`` chose."""
+        best = indices[found["best"]]
+        info = {"orientation": best, "mirrored": best >= N_PROPER, "willingness": found["willingness"].tolist()}
+        return self._answer(found["log_p"], template, test, use_colour, model_saw_colour), info
+
+    def _answer(self, log_p: np.ndarray, template, test, use_colour: bool, model_saw_colour: bool) -> np.ndarray:
+        """The model's log p for one placement -> calibrated probabilities (N, M + 1), colour fused."""
+        lp = self._calibrate(log_p)
+        if use_colour:
+            lp = self._fuse_colour(lp, template, test, model_saw_colour)
+        return np.exp(lp)
 
     def _model_colours(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool):
         """Colour inputs for a model trained with colour (normal scores of R, G, B), or Nones
@@ -327,28 +326,22 @@ class Identifier:
         willingness = willingness - self.settings.panel_mirror_penalty * np.array([p.mirrored for p in placements])
         agreement = _agreement_with_fixed(per_candidate, panel.templates, fixed)
         best = int(np.argmax(willingness if agreement is None else agreement))
-        # The other chirality keeps some weight (none once a fixed name decided): its answer is
-        # mostly the same names with left and right swapped, so the doubt lands on the partner.
-        answers = []  # per template: probabilities (N, M) of each placement, colour fused
-        for lps, template, (tc, _) in zip(per_candidate, panel.templates, tc_sc):
-            fused = []
-            for lp in lps:
-                lp = self._calibrate(lp)
-                if use_colour:
-                    lp = self._fuse_colour(lp, template, test, model_saw_colour=tc is not None)
-                fused.append(np.exp(lp)[:, :-1])
-            answers.append(fused)
+
+        def names_and_probs(k):  # the panel's answer for placement k: (names, (N, names))
+            return name_probabilities([
+                (self._answer(lps[k], t, test, use_colour, tc is not None)[:, :-1], t.labels)
+                for lps, t, (tc, _) in zip(per_candidate, panel.templates, tc_sc)
+            ])
+
         # The names are assigned on the chosen placement's answer. The probabilities reported
         # keep some weight on the other chirality (none once a fixed name decided: its answer
         # is mostly the same names with left and right swapped, so the doubt lands on the
         # partner) and get the panel's temperature; both fitted for calibration.
-        other = 1 - best if agreement is None and len(placements) == 2 else None
-        doubt = self.settings.chirality_doubt if other is not None else 0.0
-        names, chosen = name_probabilities([(a[best], t.labels) for a, t in zip(answers, panel.templates)])
+        names, chosen = names_and_probs(best)
         probs = chosen
+        doubt = self.settings.chirality_doubt if agreement is None and len(placements) == 2 else 0.0
         if doubt:
-            _, hedge = name_probabilities([(a[other], t.labels) for a, t in zip(answers, panel.templates)])
-            probs = (1 - doubt) * chosen + doubt * hedge
+            probs = (1 - doubt) * chosen + doubt * names_and_probs(1 - best)[1]
         probs = _sharpen(probs, self.settings.panel_temperature)
         info = {"colour": use_colour, "mirrored": placements[best].mirrored, "willingness": willingness.tolist()}
         return make_labelling(names, probs, fixed, info, self.settings.no_match_weight, assign_probs=chosen)
