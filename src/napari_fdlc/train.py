@@ -25,10 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .colour import IDENTITY_CHANNELS, normal_scores
 from .corpus import LABS, Worm, load_corpus
+from .errors import atomic_write
 from .geometry import ORIENTATIONS, apply_affine, canonical_frame, fit_affine, true_orientation
 from .simulate import SimulationParams, simulate_worm
-from .colour import IDENTITY_CHANNELS, normal_scores
 from .table import NeuronTable
 
 
@@ -366,18 +367,19 @@ def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, extra:
     from .identify import Identifier
 
     start = time.time()
+    corpus = load_corpus(cfg.corpus)
     if val_pairs is None:
-        rng = np.random.default_rng(cfg.seed)
-        _, val_worms = split_worms(load_corpus(cfg.corpus), cfg, rng)
+        _, val_worms = split_worms(corpus, cfg, np.random.default_rng(cfg.seed))
         val_pairs = validation_pairs(val_worms, cfg.val_pairs_per_lab, np.random.default_rng(cfg.seed + 1))
     out = Path(cfg.out)
     own_labs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
     settings = calibrate(Identifier.load(out, cfg.device), own_labs, log,
-                         panel_tests=_panel_tests(load_corpus(cfg.corpus), own_labs, cfg.train_labs))
+                         panel_tests=_panel_tests(corpus, own_labs, cfg.train_labs))
     meta = json.loads(out.with_suffix(".json").read_text())
     meta.update(extra or {})
     meta.update(inference=settings, calibration_minutes=round((time.time() - start) / 60, 1))
-    out.with_suffix(".json").write_text(json.dumps(meta, indent=2))
+    with atomic_write(out.with_suffix(".json"), "w", encoding="utf-8") as handle:
+        handle.write(json.dumps(meta, indent=2))
     log(f"calibrated inference settings: {settings}")
     return settings
 
@@ -406,9 +408,8 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
     the colour fusion weight (top-1 with colour), then the temperature that minimises the
     expected calibration error of ``auto_conf``. With ``panel_tests`` (see _panel_tests), the
     panel's temperature and chirality doubt (calibration error); its mirror prior is fixed."""
-    from .evaluate import Scores
-
-    # Every setting fitted here acts after the model's forward passes: compute those once.
+    # Every setting fitted here acts after the model's forward passes and the panel's
+    # registrations: compute those once (instance attributes shadow the methods until the end).
     forward, cache = identifier._forward_many, {}
 
     def cached_forward(template_xyz, tests, template_colour=None, test_colours=None):
@@ -417,7 +418,29 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
             cache[key] = forward(template_xyz, tests, template_colour, test_colours)
         return cache[key]
 
+    def cached_register(atlas):
+        register = atlas.register
+
+        def cached(test, use_colour=True):
+            key = ("register", id(atlas), id(test), use_colour)
+            if key not in cache:
+                cache[key] = register(test, use_colour)
+            return cache[key]
+        return cached
+
     identifier._forward_many = cached_forward
+    for panel, _ in (panel_tests or {}).values():
+        panel.atlas.register = cached_register(panel.atlas)
+    try:
+        return _fit_settings(identifier, val_pairs, log, panel_tests)
+    finally:
+        del identifier._forward_many
+        for panel, _ in (panel_tests or {}).values():
+            del panel.atlas.register
+
+
+def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict | None) -> dict:
+    from .evaluate import Scores
 
     def run(use_colour):
         scores = Scores()
@@ -467,5 +490,4 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
             log(f"calibrate: chirality_doubt {settings.chirality_doubt}, panel_temperature "
                 f"{settings.panel_temperature}: ECE {results[-1]:.3f}")
         settings.chirality_doubt, settings.panel_temperature = grid[int(np.argmin(results))]
-    identifier._forward_many = forward
     return asdict(settings)
