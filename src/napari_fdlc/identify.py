@@ -252,13 +252,16 @@ class Identifier:
     def _model_colours(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool):
         """Colour inputs for a model trained with colour (normal scores of R, G, B), or Nones
         when the model has no colour branch, colour is off, or a table lacks a channel."""
-        if not (use_colour and self.model.config.get("colour_channels")):
-            return None, None
         tables = [template, *tests]
-        if not all(all(c in t.colours for c in colour_model.IDENTITY_CHANNELS) for t in tables):
+        if not self._takes_colour(tables, use_colour):
             return None, None
         scores = [colour_model.normal_scores(t, colour_model.IDENTITY_CHANNELS) for t in tables]
         return scores[0], scores[1:]
+
+    def _takes_colour(self, tables: list[NeuronTable], use_colour: bool) -> bool:
+        """Whether the model gets colour as an input for these tables (see _model_colours)."""
+        return bool(use_colour and self.model.config.get("colour_channels")) and all(
+            all(c in t.colours for c in colour_model.IDENTITY_CHANNELS) for t in tables)
 
     def _calibrate(self, log_p: np.ndarray) -> np.ndarray:
         """Temperature (fitted on training labs) on the final answer only — not on the

@@ -255,7 +255,7 @@ def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: Tra
     if calibrate is not None:
         lp = calibrate(lp)
     if s.use_colour:
-        saw = _model_colours(identifier, ref, [volume], s)[0] is not None
+        saw = identifier._takes_colour([ref.table, volume], s.use_colour)
         lp = identifier._fuse_colour(lp, ref.table, volume, model_saw_colour=saw)
     if s.position_sigma_um > 0:
         lp = _fuse_position(lp, placed, ref.xyz, s.position_sigma_um)
