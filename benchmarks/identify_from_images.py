@@ -63,7 +63,7 @@ def main(argv=None) -> int:
                 mirrored = mirrored_relative_to(atlas, source)
                 if args.protocol == "pairs":
                     mirrored = mirrored != mirrored_relative_to(atlas, template)
-                told = identifier.with_settings(chirality="mirrored" if mirrored else "same")
+                told = identifier.with_chirality("mirrored" if mirrored else "same")
             if args.protocol == "panel":
                 return told.label_panel(table, panel, use_colour=True)
             return told.label(table, [template], use_colour=True)

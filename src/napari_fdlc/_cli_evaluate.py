@@ -98,7 +98,7 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
         # each worm's chirality relative to the atlas, read from its names.
         scores = Scores()
         for test in tables[:panel_worms_per_lab]:
-            told = identifier.with_settings(chirality="mirrored" if mirrored_relative_to(panel.atlas, test) else "same")
+            told = identifier.with_chirality("mirrored" if mirrored_relative_to(panel.atlas, test) else "same")
             scores.add(told.label_panel(test, panel, use_colour=True), test, vocabulary)
         rows.append((lab, "panel", "fdlc", "colour, chirality given", scores.summary()))
         _log(f"{lab} panel colour, chirality given: {rows[-1][-1]}")

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from .errors import FdlcError
+from .geometry import CHIRALITIES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=("fdlc", "cpd", "geometry"), default="fdlc",
                         help="fdlc (default), cpd (classical baseline) or geometry (the warp chain alone, no model)")
     parser.add_argument("--weights", help="model weights (path without suffix); default: the shipped model")
-    parser.add_argument("--chirality", choices=("auto", "same", "mirrored"), default="auto",
+    parser.add_argument("--chirality", choices=CHIRALITIES, default="auto",
                         help="handedness of the volumes relative to the reference(s), as for fdlc label")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads for the model (default: torch's)")
     parser.add_argument("--out", required=True, help="output CSV")
@@ -73,9 +74,7 @@ def run(args: argparse.Namespace) -> int:
             import torch
 
             torch.set_num_threads(args.threads)
-        identifier = Identifier.load(args.weights) if args.weights else default_identifier()
-        if args.chirality != identifier.settings.chirality:
-            identifier = identifier.with_settings(chirality=args.chirality)
+        identifier = (Identifier.load(args.weights) if args.weights else default_identifier()).with_chirality(args.chirality)
     start = time.perf_counter()
 
     def progress(done: int, total: int) -> None:

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from .errors import FdlcError
+from .geometry import CHIRALITIES
 
 METHODS = ("fdlc", "cpd")
 
@@ -24,7 +25,7 @@ def _label_parser(sub) -> None:
     p.add_argument("--top-k", type=int, default=3, help="number of candidates written (default 3)")
     p.add_argument("--method", choices=METHODS, default="fdlc", help="fdlc (default) or cpd (classical baseline; needs --template)")
     p.add_argument("--weights", help="model weights (path without suffix); default: the shipped model")
-    p.add_argument("--chirality", choices=("auto", "same", "mirrored"), default="auto",
+    p.add_argument("--chirality", choices=CHIRALITIES, default="auto",
                    help="handedness of the tests relative to the template(s) or the built-in atlas: auto (default) "
                         "tries both; same / mirrored when you know your microscope (see docs/cli.md)")
     p.add_argument("--out", required=True, help="output CSV (one test) or directory (several tests)")

@@ -25,6 +25,8 @@ _MIRROR = np.diag([1.0, 1.0, -1.0])  # z mirrored by an acquisition convention
 _PROPER = [flip @ _roll(q) for flip in (np.eye(3), _HEAD_TAIL) for q in range(4)]
 ORIENTATIONS = np.array(_PROPER + [o @ _MIRROR for o in _PROPER])
 N_PROPER = len(_PROPER)
+# How a test's handedness relates to its template's (or the atlas's): search both, or known.
+CHIRALITIES = ("auto", "same", "mirrored")
 # The non-learned floor of docs/fdlc.md tries the four proper 180° flips only.
 FLOOR_FLIPS = np.array([np.eye(3), _HEAD_TAIL, _roll(2), _HEAD_TAIL @ _roll(2)])
 

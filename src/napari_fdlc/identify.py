@@ -24,7 +24,7 @@ import numpy as np
 
 from . import colour as colour_model
 from .errors import FdlcError, ModelError, warn
-from .geometry import N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, compose_affine, fit_affine
+from .geometry import CHIRALITIES, N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, compose_affine, fit_affine
 from .match import Labelling, make_labelling, name_probabilities
 from .table import NeuronTable
 
@@ -32,7 +32,6 @@ if TYPE_CHECKING:
     from .reference import Panel
 
 WEIGHTS_NAME = "fdlc_model"
-CHIRALITIES = ("auto", "same", "mirrored")
 
 
 def shipped_weights() -> Path:
@@ -113,6 +112,10 @@ class Identifier:
         from dataclasses import replace
 
         return Identifier(self.model, replace(self.settings, **changes), self.device)
+
+    def with_chirality(self, chirality: str) -> "Identifier":
+        """This identifier, or a copy told the tests' handedness (see InferenceSettings.chirality)."""
+        return self if chirality == self.settings.chirality else self.with_settings(chirality=chirality)
 
     # ------------------------------------------------------------------------------------------
     def _forward_many(

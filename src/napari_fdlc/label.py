@@ -80,9 +80,7 @@ def label_files(
         from .identify import Identifier, default_identifier, label_neurons
         from .reference import load_panel
 
-        identifier = Identifier.load(weights) if weights else default_identifier()
-        if chirality != identifier.settings.chirality:
-            identifier = identifier.with_settings(chirality=chirality)
+        identifier = (Identifier.load(weights) if weights else default_identifier()).with_chirality(chirality)
         if not template_tables:
             load_panel()  # refuse a missing panel before any work
         results = [label_neurons(t, template_tables or None, use_colour, identifier=identifier) for t in test_tables]

@@ -1347,10 +1347,9 @@ def _with_chirality(identifier, chirality: str):
     from ..identify import default_identifier
 
     identifier = identifier or default_identifier()
-    settings = getattr(identifier, "settings", None)  # scripts may inject their own matcher
-    if settings is None or settings.chirality == chirality:
+    if not hasattr(identifier, "with_chirality"):  # scripts may inject their own matcher
         return identifier
-    return identifier.with_settings(chirality=chirality)
+    return identifier.with_chirality(chirality)
 
 
 def _combo() -> QComboBox:
