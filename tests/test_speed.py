@@ -77,5 +77,5 @@ def test_match_many_equals_match_pair(model, worm, other_worm):
     many = ident.match_many(other_worm, tests)
     for test, (probs, info) in zip(tests, many):
         single, info1 = ident.match_pair(other_worm, test)
-        assert info["orientation"] == info1["orientation"]
+        assert info["mirrored"] == info1["mirrored"]
         assert np.allclose(probs, single, atol=1e-5)

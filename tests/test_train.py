@@ -44,6 +44,32 @@ def test_tiny_training_run_overfits_a_handful_of_pairs():
     assert accuracy >= 0.95, accuracy
 
 
+def test_registered_and_panel_examples_are_placed_as_inference_places_them():
+    """A registered example is the template's canonical frame and the test's registration onto
+    it in the right chirality (matched neurons land close); a panel example is a worm sampled
+    from the atlas and the test registered onto the atlas."""
+    from napari_fdlc.corpus import Worm
+    from napari_fdlc.reference import build_atlas
+    from napari_fdlc.train import _targets, sample_example
+
+    rng = np.random.default_rng(3)
+    cfg = TrainConfig()
+    template = generate_worm(seed=1)
+    mirrored = simulate_worm(template, rng, TRAIN_SIM).table
+    mirrored.xyz[:, 2] *= -1  # a recording with the other acquisition convention
+    target = _targets(template, mirrored)
+    a, b, t, negative, _, _ = make_example(template, mirrored, target, rng, cfg, registered=True)
+    hit = (t >= 0) & (t < len(a))
+    assert not negative and np.median(np.linalg.norm(b[hit] - a[t[hit]], axis=1)) < 3.0
+
+    worms = [Worm("A", f"w{i}", generate_worm(seed=i)) for i in range(4)]
+    atlas = build_atlas(worms)
+    a, b, t, _, _, _ = sample_example(worms, rng, TrainConfig(synthetic_fraction=0.0, panel_fraction=1.0), atlas)
+    assert len(a) == len(atlas.names)  # the whole sampled atlas worm, like the panel's templates
+    hit = (t >= 0) & (t < len(a))
+    assert hit.sum() >= 10 and np.median(np.linalg.norm(b[hit] - a[t[hit]], axis=1)) < 5.0  # not placed: ~20
+
+
 def test_negative_examples_target_no_match():
     log_p = torch.log_softmax(torch.randn(1, 3, 5), -1)
     target = torch.tensor([[0, 1, -1]])

@@ -1,11 +1,12 @@
 """Identify the neurons of a test worm against one or more labelled templates.
 
-model (positions) ──► orientation search ──► affine refinement ──► colour fusion ──► names
-                                                                          │
-                                                     match.name_probabilities / assign
+test ──► registration onto the reference ──► model ──► chirality ──► calibration, colour ──► names
+         (register.py: the template, or         (one placement    fusion        (match.name_probabilities,
+          the atlas for the built-in panel)      per chirality)                  match.assign)
 
-With the built-in panel, registration to the atlas (reference.Atlas.register) replaces the
-orientation search: the model then only chooses the chirality (label_panel).
+Registration finds the pose (any roll about the body axis, either head direction); the model
+then scores the proper and the mirrored placement, and a prior keeps the reference's
+handedness unless the model, a name the user fixed or ``--chirality`` says otherwise.
 
 The model is loaded once; :meth:`Identifier.label` may be called for as many tests as needed.
 torch is imported here only when an :class:`Identifier` is made, so ``import napari_fdlc`` and
@@ -24,7 +25,7 @@ import numpy as np
 
 from . import colour as colour_model
 from .errors import FdlcError, ModelError, warn
-from .geometry import CHIRALITIES, N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, compose_affine, fit_affine
+from .geometry import CHIRALITIES, apply_affine, compose_affine, fit_affine
 from .match import Labelling, make_labelling, name_probabilities
 from .table import NeuronTable
 
@@ -32,6 +33,10 @@ if TYPE_CHECKING:
     from .reference import Panel
 
 WEIGHTS_NAME = "fdlc_model"
+# The prior against a mirrored placement that ships (see InferenceSettings.mirror_penalty): on
+# worms of labs it had not seen, fitting it let the model's noisy preference cost the EY fold
+# 23 points of panel top-1 (45.6 vs 68.3 %), and the demo worm was named mirrored.
+MIRROR_PRIOR = 1.0
 
 
 def shipped_weights() -> Path:
@@ -40,7 +45,7 @@ def shipped_weights() -> Path:
 
 @dataclass
 class InferenceSettings:
-    refine_steps: int = 0  # affine re-alignment passes after the orientation search (measured: no gain yet)
+    refine_steps: int = 0  # affine re-alignment passes after the placement (measured: no gain yet)
     colour_weight: float = 1.0  # λ: exponent of the colour likelihood ratio
     colour_sigma: float = 0.6  # width of the colour likelihood in normal-score units
     temperature: float = 1.0  # divides the log-probabilities (calibration, fitted on training labs)
@@ -48,16 +53,14 @@ class InferenceSettings:
     # assumes the template's, "mirrored" the other (a z axis flipped by the acquisition).
     # Positions and colours barely tell (bilateral symmetry); a user who knows the microscope does.
     chirality: str = "auto"
-    # Prior against the mirrored convention: a bilaterally symmetric head matches almost as well
-    # mirrored, and most recordings are not mirrored; fitted on training labs (train.calibrate).
-    mirror_penalty: float = 0.0
+    # Prior against a mirrored placement (relative to the template or the atlas). The head is
+    # bilaterally symmetric and the model's preference between the two placements of a worm
+    # from a lab it has not seen was measured to be noise, so the value that ships (MIRROR_PRIOR,
+    # not fitted) keeps the reference's handedness unless the user says otherwise.
+    mirror_penalty: float = MIRROR_PRIOR
     # Late colour fusion when the model got no colour input (only some of R, G, B shared):
     # weight 1 took a position-only model from 18 to 32 % top-1 on validation pairs (stage 1).
     fallback_colour_weight: float = 1.0
-    # Panel: the prior against a mirrored placement. The model's preference between the two
-    # placements of one worm was measured to be noise, so the shipped value (1.0, not fitted:
-    # train.PANEL_MIRROR_PRIOR) keeps the atlas's handedness unless the user says otherwise.
-    panel_mirror_penalty: float = 0.0
     chirality_doubt: float = 0.0  # panel: weight of the other chirality's answer
     panel_temperature: float = 1.0  # panel: on the averaged answer (fitted on training labs)
     no_match_weight: float = 0.2  # see match.assign
@@ -73,13 +76,6 @@ class InferenceSettings:
     def __post_init__(self):
         if self.chirality not in CHIRALITIES:
             raise FdlcError(f"unknown chirality '{self.chirality}' (use {', '.join(CHIRALITIES)})")
-
-    def orientation_indices(self) -> list[int]:
-        """Indices into ``geometry.ORIENTATIONS`` that the search tries."""
-        every = range(len(ORIENTATIONS))
-        if self.chirality == "auto":
-            return list(every)
-        return [k for k in every if (k >= N_PROPER) == (self.chirality == "mirrored")]
 
 
 class Identifier:
@@ -168,15 +164,17 @@ class Identifier:
         refine_steps: int | None = None,
         template_colour: np.ndarray | None = None,
         test_colours: list[np.ndarray] | None = None,
+        mirrored: list[np.ndarray] | None = None,
     ) -> list[dict]:
-        """Orientation choice and affine refinement for many tests at once.
+        """Placement choice and affine refinement for many tests at once.
 
         ``starts[v]`` (K_v, N_v, 3) holds K_v candidate placements of test v in the template's
-        frame (16 orientations for a full search, 1 when tracking from the previous volume). All
+        frame (one per chirality after registration, 1 when tracking from the previous volume),
+        ``mirrored[v]`` (K_v,) which of them are mirrored (they pay ``mirror_penalty``). All
         candidates of all tests go through the model in one batch; the candidate the model is
         most willing to match wins; then ``refine_steps`` affine passes, batched over tests.
         Returns per test: ``log_p`` (N_v, M + 1), ``best`` (candidate index), ``willingness``
-        (per candidate), ``affine`` (4×3: winning candidate -> final placement), ``moved``.
+        (per candidate), ``all_log_p``, ``affine`` (4×3: winning candidate -> final placement), ``moved``.
         """
         steps = self.settings.refine_steps if refine_steps is None else refine_steps
         a = np.asarray(template_xyz, dtype=np.float64)
@@ -187,12 +185,12 @@ class Identifier:
             flat_colours = [col for cands, col in zip(starts, test_colours) for _ in cands]
         log_p = self._forward_many(a, flat, template_colour, flat_colours)
         results, k0 = [], 0
-        for cands in starts:
+        for v, cands in enumerate(starts):
             lps = np.stack(log_p[k0 : k0 + len(cands)])
             k0 += len(cands)
             willingness = _willingness(lps, m)
-            if len(lps) == len(ORIENTATIONS):
-                willingness = willingness - self.settings.mirror_penalty * (np.arange(len(lps)) >= N_PROPER)
+            if mirrored is not None:
+                willingness = willingness - self.settings.mirror_penalty * np.asarray(mirrored[v], float)
             best = int(np.argmax(willingness))
             results.append({"best": best, "willingness": willingness, "log_p": lps[best], "all_log_p": lps,
                             "moved": cands[best], "affine": np.vstack([np.eye(3), np.zeros((1, 3))])})
@@ -209,41 +207,49 @@ class Identifier:
                 r["log_p"] = lp
         return results
 
+    def place(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True):
+        """The template in its canonical frame, and each test registered onto it
+        (:func:`napari_fdlc.register.register`), one placement per chirality the settings allow:
+        (template xyz, starts (K_v, N_v, 3) per test, mirrored flags (K_v,) per test)."""
+        from .register import register, template_mixture
+
+        mixture = template_mixture(template)
+        starts, mirrored = [], []
+        for test in tests:
+            placements = [p for p in register(test, mixture, use_colour) if self._allows(p.mirrored)]
+            starts.append(np.stack([p.xyz for p in placements]))
+            mirrored.append(np.array([p.mirrored for p in placements]))
+        return mixture.mean, starts, mirrored
+
+    def _allows(self, mirrored: bool) -> bool:
+        """Whether the chirality setting lets a (mirrored or proper) placement be tried."""
+        return self.settings.chirality == "auto" or mirrored == (self.settings.chirality == "mirrored")
+
     def match_pair(
-        self, template: NeuronTable, test: NeuronTable, use_colour: bool = True, orientation: int | None = None,
-        fixed: dict[int, str] | None = None,
+        self, template: NeuronTable, test: NeuronTable, use_colour: bool = True, fixed: dict[int, str] | None = None,
     ) -> tuple[np.ndarray, dict]:
         """Probabilities (N_test, M_template + 1) that each test neuron is each template neuron
-        (last column: no match), with the chosen orientation in the info dict. ``orientation``
-        skips the search (an index into ``geometry.ORIENTATIONS`` already known to be right);
-        names the user ``fixed`` (row -> name) choose the orientation that agrees with them."""
-        a, _, _ = canonical_frame(template.xyz)
-        b, _, _ = canonical_frame(test.xyz)
-        indices = self.settings.orientation_indices() if orientation is None else [orientation]
-        candidates = np.einsum("kij,nj->kni", ORIENTATIONS[indices], b)
-        tc, sc = self._model_colours(template, [test], use_colour)
-        found = self._align(a, [candidates], template_colour=tc, test_colours=sc)[0]
-        agreement = _agreement_with_fixed([found["all_log_p"]], [template], fixed)
-        if agreement is not None and not self.settings.refine_steps:
-            found["best"] = int(np.argmax(agreement))
-            found["log_p"] = found["all_log_p"][found["best"]]
-        return self._pair_answer(found, indices, template, test, use_colour, tc is not None)
+        (last column: no match), with the chosen chirality in the info dict; names the user
+        ``fixed`` (row -> name) choose the chirality that agrees with them."""
+        return self.match_many(template, [test], use_colour, fixed)[0]
 
-    def match_many(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True) -> list[tuple[np.ndarray, dict]]:
+    def match_many(
+        self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True, fixed: dict[int, str] | None = None,
+    ) -> list[tuple[np.ndarray, dict]]:
         """:meth:`match_pair` for many tests against one template, batched through the model
-        (same answers; many volumes per second instead of one forward pass per volume)."""
-        a, _, _ = canonical_frame(template.xyz)
-        indices = self.settings.orientation_indices()
-        starts = [np.einsum("kij,nj->kni", ORIENTATIONS[indices], canonical_frame(t.xyz)[0]) for t in tests]
+        (many volumes per second instead of one forward pass per volume)."""
+        a, starts, mirrored = self.place(template, tests, use_colour)
         tc, sc = self._model_colours(template, tests, use_colour)
-        found = self._align(a, starts, template_colour=tc, test_colours=sc)
-        return [self._pair_answer(f, indices, template, test, use_colour, tc is not None) for test, f in zip(tests, found)]
-
-    def _pair_answer(self, found: dict, indices: list[int], template, test, use_colour: bool, model_saw_colour: bool):
-        """(probabilities (N, M + 1), info) of the orientation ``_align`` chose."""
-        best = indices[found["best"]]
-        info = {"orientation": best, "mirrored": best >= N_PROPER, "willingness": found["willingness"].tolist()}
-        return self._answer(found["log_p"], template, test, use_colour, model_saw_colour), info
+        found = self._align(a, starts, template_colour=tc, test_colours=sc, mirrored=mirrored)
+        out = []
+        for test, f, flags in zip(tests, found, mirrored):
+            agreement = _agreement_with_fixed([f["all_log_p"]], [template], fixed)
+            if agreement is not None and not self.settings.refine_steps:
+                f["best"] = int(np.argmax(agreement))
+                f["log_p"] = f["all_log_p"][f["best"]]
+            info = {"mirrored": bool(flags[f["best"]]), "willingness": f["willingness"].tolist()}
+            out.append((self._answer(f["log_p"], template, test, use_colour, tc is not None), info))
+        return out
 
     def _answer(self, log_p: np.ndarray, template, test, use_colour: bool, model_saw_colour: bool) -> np.ndarray:
         """The model's log p for one placement -> calibrated probabilities (N, M + 1), colour fused."""
@@ -268,7 +274,7 @@ class Identifier:
 
     def _calibrate(self, log_p: np.ndarray) -> np.ndarray:
         """Temperature (fitted on training labs) on the final answer only — not on the
-        orientation search or the refinement weights."""
+        placement choice or the refinement weights."""
         if self.settings.temperature == 1.0:
             return log_p
         lp = log_p / self.settings.temperature
@@ -302,7 +308,7 @@ class Identifier:
         fixed: dict[int, str] | None = None,
     ) -> Labelling:
         """Names for every test neuron from one or several labelled templates, each matched in
-        its own orientation search. ``fixed`` maps rows to names the user decided."""
+        its own registration. ``fixed`` maps rows to names the user decided."""
         use_colour = self._check(test, templates, use_colour)
         per_template, infos = [], []
         for template in templates:
@@ -320,16 +326,14 @@ class Identifier:
         when there are any, else the one the model is most willing to match (minus the panel's
         mirror prior fitted on the training labs)."""
         use_colour = self._check(test, panel.templates, use_colour)
-        placements = panel.atlas.register(test, use_colour)
-        if self.settings.chirality != "auto":
-            placements = [p for p in placements if p.mirrored == (self.settings.chirality == "mirrored")]
+        placements = [p for p in panel.atlas.register(test, use_colour) if self._allows(p.mirrored)]
         tc_sc = [self._model_colours(t, [test], use_colour) for t in panel.templates]
         per_candidate = [  # per template: (placements, N, M + 1)
             np.stack(self._forward_many(t.xyz, [p.xyz for p in placements], tc, None if sc is None else sc * len(placements)))
             for t, (tc, sc) in zip(panel.templates, tc_sc)
         ]
         willingness = sum(_willingness(lps, len(t)) for lps, t in zip(per_candidate, panel.templates))
-        willingness = willingness - self.settings.panel_mirror_penalty * np.array([p.mirrored for p in placements])
+        willingness = willingness - self.settings.mirror_penalty * np.array([p.mirrored for p in placements])
         agreement = _agreement_with_fixed(per_candidate, panel.templates, fixed)
         best = int(np.argmax(willingness if agreement is None else agreement))
 

@@ -19,12 +19,11 @@ atlas's scale anyway, and the model's distance prior is gentler in the smaller f
 The panel (what ``fdlc label`` and Auto-label use without ``--template``) is the atlas's mean
 worm plus a few worms sampled from its per-name spreads, all in the atlas's frame;
 :func:`napari_fdlc.match.name_probabilities` averages their answers into one probability per
-name. A test worm is first placed in that frame by :meth:`Atlas.register`: the atlas is a
-Gaussian mixture (one component per name, its spread plus colour), fitted to the test's
-points by EM from 24 starting poses per chirality. Unlike the 16 right-angle orientations used
-between two worms, this finds any roll about the body axis: it took the panel's top-1 with
-colour from 29 to 53 % averaged over the five labs (shipped model, atlas rebuilt without the
-scored lab; docs/accuracy.md). :func:`generate_worm` samples a realistic worm from the same
+name. A test worm is first placed in that frame by :meth:`Atlas.register`
+(:mod:`napari_fdlc.register`: the atlas as a Gaussian mixture, one component per name, its
+spread plus colour). Registration instead of the 16 right-angle orientations took the panel's
+top-1 with colour from 29 to 53 % averaged over the five labs (shipped model, atlas rebuilt
+without the scored lab). :func:`generate_worm` samples a realistic worm from the same
 statistics — the bundled sample data is made this way.
 """
 
@@ -40,10 +39,10 @@ import pandas as pd
 from .colour import IDENTITY_CHANNELS, normal_scores
 from .errors import ModelError, atomic_write
 from .geometry import canonical_frame
+from .register import Mixture, Placement, register
 from .table import NeuronTable
 
 ATLAS_NAME = "atlas.csv"
-ROLL_STEPS = 12  # starting rolls about the body axis for the registration (every 30°)
 PANEL_SAMPLES = 4  # sampled worms added to the mean worm in the built-in panel
 PANEL_SEED = 0
 
@@ -59,55 +58,16 @@ class Atlas:
     worms: int = 0
     labs: tuple[str, ...] = ()
 
-    def register(self, test: NeuronTable, use_colour: bool = True, iterations: int = 6, keep: int = 3) -> list["Placement"]:
-        """Place ``test`` in the atlas frame, once per chirality (proper first, then mirrored).
+    def mixture(self) -> Mixture:
+        """The atlas as a mixture for :func:`napari_fdlc.register.register`: each name's spread
+        plus ``_REGISTRATION_SD`` (segmentation error, residual pose), weighted by how often it
+        is named; the scale is free within bounds (the atlas is smaller than real worms)."""
+        return Mixture(self.mean, self.sd**2 + _REGISTRATION_SD**2, np.log(np.maximum(self.frequency, 1e-6)),
+                       self.colour, self.colour_sd**2, scale_range=(0.8, 1.25))
 
-        Neither chirality can be ruled out here: the head is nearly left/right symmetric and
-        NeuroPAL colours are shared by left/right pairs, so the mixture fits a mirrored worm
-        almost as well (measured: the likelihood difference has a random sign). The caller
-        decides (the model's score, a prior, or a name the user fixed).
-        """
-        canon = canonical_frame(test.xyz)[0]
-        var = self.sd**2 + _REGISTRATION_SD**2
-        log_weight = np.log(np.maximum(self.frequency, 1e-6)) - 0.5 * np.log(var).sum(axis=1)
-        colour_term = 0.0
-        if use_colour and all(c in test.colours for c in IDENTITY_CHANNELS):
-            scores = normal_scores(test, IDENTITY_CHANNELS)
-            cvar = self.colour_sd**2 + _REGISTRATION_COLOUR_VAR
-            colour_term = -0.5 * (((scores[:, None] - self.colour[None]) ** 2) / cvar[None]).sum(-1)
-            colour_term = colour_term - 0.5 * np.log(cvar).sum(axis=1)[None]
-
-        inv_var = 1.0 / var
-        constant = log_weight - 0.5 * (self.mean**2 * inv_var).sum(axis=1) + colour_term
-
-        def log_components(points):  # (..., N, K): log weight × density of each name at each point
-            # the Mahalanobis distance expanded into matrix products (10× faster than broadcasting)
-            return -0.5 * (points**2) @ inv_var.T + points @ (self.mean * inv_var).T + constant
-
-        def total(comp):  # per-point log-likelihood with a uniform outlier class (spurious neurons)
-            top = np.maximum(comp.max(axis=-1), _OUTLIER_LOG_DENSITY)
-            inner = np.exp(comp - top[..., None]).sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - top)
-            return top + np.log(inner)
-
-        starts = np.einsum("kij,nj->kni", _START_ROTATIONS, canon)
-        coarse = total(log_components(starts)).sum(axis=1)
-        placements = []
-        for mirrored in (False, True):
-            chosen = np.flatnonzero(_START_MIRRORED == mirrored)
-            best = None
-            for k in chosen[np.argsort(-coarse[chosen])[:keep]]:
-                points = starts[k]
-                for _ in range(iterations):
-                    comp = log_components(points)
-                    resp = np.exp(comp - total(comp)[:, None])
-                    weight = resp.sum(axis=1)
-                    targets = (resp @ self.mean) / np.maximum(weight[:, None], 1e-12)
-                    points = _weighted_similarity(points, targets, weight)
-                score = float(total(log_components(points)).mean())
-                if best is None or score > best.score:
-                    best = Placement(points, mirrored, score)
-            placements.append(best)
-        return placements
+    def register(self, test: NeuronTable, use_colour: bool = True) -> list[Placement]:
+        """``test`` placed in the atlas frame, once per chirality (proper first, then mirrored)."""
+        return register(test, self.mixture(), use_colour)
 
     def to_frame(self) -> pd.DataFrame:
         df = pd.DataFrame({"name": self.names})
@@ -147,51 +107,7 @@ class Atlas:
             raise ModelError(f"{path}: not a valid atlas file ({exc})") from None
 
 
-@dataclass
-class Placement:
-    """A test worm placed in the atlas frame by :meth:`Atlas.register`."""
-
-    xyz: np.ndarray  # (N, 3) µm in the atlas frame
-    mirrored: bool  # the recording's z had to be mirrored
-    score: float  # mean log-likelihood per neuron under the atlas mixture
-
-
-_REGISTRATION_SD = 1.5  # µm added to each name's spread (segmentation error, residual pose)
-_REGISTRATION_COLOUR_VAR = 0.15  # added to each name's colour variance (normal-score units)
-_OUTLIER_LOG_DENSITY = -15.0  # per point: a neuron the atlas does not name (-7 fitted the worms closer but scored worse)
-
-
-def _start_rotations() -> tuple[np.ndarray, np.ndarray]:
-    """Starting poses: ROLL_STEPS rolls about the body axis × head left/right × chirality (the
-    conventions of :data:`napari_fdlc.geometry.ORIENTATIONS`, on a finer grid of rolls)."""
-    head_tail = np.diag([-1.0, -1.0, 1.0])
-    mirror = np.diag([1.0, 1.0, -1.0])
-    rotations, mirrored = [], []
-    for m in (False, True):
-        for head in (np.eye(3), head_tail):
-            for k in range(ROLL_STEPS):
-                angle = 2 * np.pi * k / ROLL_STEPS
-                c, s = np.cos(angle), np.sin(angle)
-                roll = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-                rotations.append(head @ roll @ (mirror if m else np.eye(3)))
-                mirrored.append(m)
-    return np.array(rotations), np.array(mirrored)
-
-
-_START_ROTATIONS, _START_MIRRORED = _start_rotations()
-
-
-def _weighted_similarity(points: np.ndarray, targets: np.ndarray, weight: np.ndarray, scale_range=(0.8, 1.25)) -> np.ndarray:
-    """``points`` moved by the weighted least-squares proper similarity onto ``targets``
-    (scale bounded: a cropped field of view must not shrink the worm onto the atlas centre)."""
-    w = weight / max(weight.sum(), 1e-12)
-    mu_p, mu_t = w @ points, w @ targets
-    p0, t0 = points - mu_p, targets - mu_t
-    u, sig, vt = np.linalg.svd((p0 * w[:, None]).T @ t0)
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
-    rotation = u @ d @ vt  # targets ≈ p0 @ rotation
-    scale = np.clip(np.trace(np.diag(sig) @ d) / max((w[:, None] * p0**2).sum(), 1e-12), *scale_range)
-    return scale * p0 @ rotation + mu_t
+_REGISTRATION_SD = 1.5  # µm added to each name's spread
 
 
 def _similarity(src: np.ndarray, dst: np.ndarray, allow_mirror: bool):

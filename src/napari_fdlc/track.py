@@ -7,16 +7,16 @@ first once, so they share its IDs; their neurons it lacks get new IDs after its 
 reference is labelled, each track also carries the reference neuron's name.
 
 Speed comes from the worm moving smoothly. Consecutive volumes share their orientation and
-nearly their pose, so only the first volume gets the full search (every orientation of
-:mod:`napari_fdlc.geometry`); every later volume is *placed* in the reference's frame by a
+nearly their pose, so only the first volume gets the full search (registration onto the
+reference, :mod:`napari_fdlc.register`, and the model's choice of chirality, as ``fdlc label``
+does); every later volume is *placed* in the reference's frame by a
 :class:`Warp` (an affine map plus a smooth non-rigid displacement) carried over from the volume
 before it. With ``placement="geometry"`` (default) the warp is carried by a cheap geometric chain
 (no model; about a millisecond per volume): place with the previous warp, pair with the
 reference by the one-to-one assignment on distance, refit, a few rounds (ICP-like). The chain
 does not depend on the model's answers, so the model then sees a whole chunk of ``chunk``
 volumes as one batch, and the result does not depend on the chunk size. A volume where fewer
-than ``lost_fraction`` of the neurons pair up (a jump) is searched again in every orientation
-and the chain restarts from it. The model's log-probabilities (plus colour) are fused with a
+than ``lost_fraction`` of the neurons pair up (a jump) gets the full search again and the chain restarts from it. The model's log-probabilities (plus colour) are fused with a
 same-worm position likelihood (``position_sigma_um``: within one recording a neuron stays where
 the warp puts it, up to segmentation jitter; the model itself was trained across worms) and the
 one-to-one assignment gives the track IDs. ``refine_steps`` more model passes re-place each
@@ -43,7 +43,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import FdlcError, TableError
-from .geometry import ORIENTATIONS, apply_affine, canonical_frame, fit_affine
+from .geometry import apply_affine, canonical_frame, fit_affine
 from .match import assign
 from .simulate import bend
 from .table import COORDS, NeuronTable, read_table
@@ -53,7 +53,7 @@ UNTRACKED = -1
 
 @dataclass
 class TrackSettings:
-    search: str = "propagate"  # "propagate" (orientation from the previous volume) or "full"
+    search: str = "propagate"  # "propagate" (pose from the previous volume) or "full"
     refine_steps: int = 0  # model passes per volume after the first, each re-placed by its own warp
     chunk: int = 16  # volumes that go through the model as one batch
     lost_fraction: float = 0.5  # placement "geometry": full search again when fewer neurons than this pair up
@@ -290,12 +290,12 @@ def _model_colours(identifier, ref: _Reference, volumes: list[NeuronTable], s: T
 
 
 def _full_search(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings) -> list[tuple]:
-    """(log p, placement) of each volume in the best orientation of the full search (no refinement)."""
-    orientations = ORIENTATIONS[identifier.settings.orientation_indices()]
-    starts = [np.einsum("kij,nj->kni", orientations, canonical_frame(v.xyz)[0]) for v in volumes]
+    """(log p, placement) of each volume registered onto the reference, the chirality chosen as
+    ``fdlc label`` chooses it (no refinement)."""
+    a, starts, mirrored = identifier.place(ref.table, volumes, s.use_colour)
     tc, sc = _model_colours(identifier, ref, volumes, s)
     extra = {} if tc is None else {"template_colour": tc, "test_colours": sc}
-    return [(f["log_p"], f["moved"]) for f in identifier._align(ref.xyz, starts, 0, **extra)]
+    return [(f["log_p"], f["moved"]) for f in identifier._align(a, starts, 0, mirrored=mirrored, **extra)]
 
 
 def _placed(identifier, ref: _Reference, volumes: list[NeuronTable], warps: list[Warp], s: TrackSettings) -> list[tuple]:
@@ -339,7 +339,7 @@ def _geometric_step(ref: _Reference, volume: NeuronTable, warp: Warp, s: TrackSe
 def _match_chunk(identifier, ref: _Reference, chunk: list[NeuronTable], s: TrackSettings) -> list[dict]:
     """Match a chunk of consecutive volumes to one reference; updates the reference's warp.
 
-    The very first volume (every volume with ``search="full"``) gets the full orientation
+    The very first volume (every volume with ``search="full"``) gets the full
     search. With ``placement="geometry"`` each later volume is placed by the geometric chain
     (:func:`_geometric_step` from the volume before), which does not depend on how volumes are
     chunked; with ``placement="model"`` by the warp fitted on the model's answer for the last
@@ -366,7 +366,7 @@ def _match_chunk(identifier, ref: _Reference, chunk: list[NeuronTable], s: Track
                 warp, choice = _geometric_step(ref, chunk[i], chain, s, pairs=True)
                 paired = (choice >= 0).mean()
                 if paired < s.lost_fraction:
-                    # Lost (a jump): search this volume in all orientations, restart from there.
+                    # Lost (a jump): search this volume in full, restart from there.
                     out = _full_search(identifier, ref, [chunk[i]], s)[0]
                     again, choice2 = _geometric_step(ref, chunk[i], _finish(identifier, ref, chunk[i], out, s)["warp"], s, pairs=True)
                     if (choice2 >= 0).mean() > paired:

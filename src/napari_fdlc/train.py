@@ -2,14 +2,18 @@
 
 Real pairs carry true biological variability (names give the correspondence; unnamed neurons
 are ignored or count as unmatched). Synthetic pairs (:mod:`napari_fdlc.simulate`) add
-deformations the corpus lacks. Every pair is put in the canonical frame exactly as at inference;
-the true orientation (one of 8) is found from the names. Three kinds of examples:
+deformations the corpus lacks. Every pair is put in the canonical frame; the true orientation
+(one of 16) is found from the names. Kinds of examples:
 
-* coarse: the test in its true orientation — what the first inference pass sees;
+* coarse: the test in its true orientation;
 * aligned: the test affinely aligned on the true matches, then perturbed a little — what the
   refinement passes see;
-* negative: the test in a wrong orientation, every target "no match" — this is what lets the
-  model's willingness to match pick the orientation at inference (see ``docs/model_card.md``).
+* negative: the test in a wrong orientation, every target "no match" — what makes the model's
+  willingness to match a test of whether two worms are aligned (see ``docs/model_card.md``);
+* registered (``registered_fraction``): the test registered onto the template, exactly what
+  inference shows the model (:mod:`napari_fdlc.register`);
+* panel (``panel_fraction``): a real worm registered onto an atlas of the training worms,
+  against a worm sampled from that atlas — what the built-in panel shows the model.
 
 Validation runs the real inference path (:class:`napari_fdlc.identify.Identifier`) per lab.
 """
@@ -28,7 +32,9 @@ import numpy as np
 from .colour import IDENTITY_CHANNELS, normal_scores
 from .corpus import LABS, Worm, load_corpus
 from .errors import atomic_write
-from .geometry import ORIENTATIONS, apply_affine, canonical_frame, fit_affine, true_orientation
+from .geometry import N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, fit_affine, true_orientation
+from .reference import atlas_worm, build_atlas
+from .register import register, template_mixture
 from .simulate import SimulationParams, simulate_worm
 from .table import NeuronTable
 
@@ -46,6 +52,11 @@ class TrainConfig:
     synthetic_fraction: float = 0.2
     aligned_fraction: float = 0.1
     negative_fraction: float = 0.15
+    # Placed by registration as inference places them (napari_fdlc.register), in the true
+    # chirality: real pairs registered onto the template, and real worms registered onto an
+    # atlas of the training worms against a worm sampled from it (the built-in panel's case).
+    registered_fraction: float = 0.0
+    panel_fraction: float = 0.0
     colour_dropout: float = 0.3  # pairs shown without colour, so --no-color uses the same weights
     max_neurons: int = 112  # crop bigger worms to a window along the body axis (CPU cost ~ N^2)
     seed: int = 0
@@ -132,9 +143,15 @@ def _targets(template: NeuronTable, test: NeuronTable) -> np.ndarray:
     return target
 
 
-def make_example(template: NeuronTable, test: NeuronTable, target: np.ndarray, rng, cfg: TrainConfig):
-    """Canonical-frame coordinates for one training pair, or None when too few matches."""
-    a, _, _ = canonical_frame(template.xyz)
+def make_example(template: NeuronTable, test: NeuronTable, target: np.ndarray, rng, cfg: TrainConfig, atlas=None, registered: bool = False):
+    """Coordinates for one training pair as the model sees them, or None when too few matches.
+
+    By default both worms are in their canonical frames and the test is turned by the true
+    orientation (or a wrong one: a negative). With ``registered`` the test is registered onto
+    the template as :meth:`Identifier.place` does; with ``atlas`` (the template was sampled from
+    it, in its frame) onto the atlas as the built-in panel does; either way in the chirality the
+    names say is right."""
+    a = template.xyz if atlas is not None else canonical_frame(template.xyz)[0]
     b, _, _ = canonical_frame(test.xyz)
     m = len(template)
     matched = np.flatnonzero((target >= 0) & (target < m))
@@ -142,8 +159,12 @@ def make_example(template: NeuronTable, test: NeuronTable, target: np.ndarray, r
         return None
     pairs = np.column_stack([target[matched], matched])
     true = true_orientation(a, b, pairs)
-    u = rng.random()
     negative = False
+    if atlas is not None or registered:
+        mixture = atlas.mixture() if atlas is not None else template_mixture(template)
+        b = register(test, mixture)[int(true >= N_PROPER)].xyz
+        return _example(a, b, target, negative, template, test)
+    u = rng.random()
     if u < cfg.negative_fraction:
         wrong = rng.choice([k for k in range(len(ORIENTATIONS)) if k != true])
         b = b @ ORIENTATIONS[wrong].T
@@ -156,6 +177,10 @@ def make_example(template: NeuronTable, test: NeuronTable, target: np.ndarray, r
             c, s = math.cos(angle), math.sin(angle)
             jitter = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) * (1 + rng.normal(0, 0.03, 3))
             b = b @ jitter.T + rng.normal(0, 3.0, 3)
+    return _example(a, b, target, negative, template, test)
+
+
+def _example(a, b, target, negative, template, test):
     return a.astype(np.float32), b.astype(np.float32), target, negative, _colour_features(template), _colour_features(test)
 
 
@@ -165,20 +190,30 @@ def _colour_features(table: NeuronTable) -> np.ndarray | None:
     return normal_scores(table, IDENTITY_CHANNELS).astype(np.float32)
 
 
-def sample_example(worms: list[Worm], rng, cfg: TrainConfig):
+def sample_example(worms: list[Worm], rng, cfg: TrainConfig, atlas=None):
+    """One training example: a synthetic pair, a real cross-worm pair, or (with ``atlas``, the
+    atlas of the training worms) a real worm against a worm sampled from the atlas."""
     while True:
-        if rng.random() < cfg.synthetic_fraction:
+        u = rng.random()
+        placement = {}
+        if u < cfg.synthetic_fraction:
             template = _crop(worms[rng.integers(len(worms))].table, cfg.max_neurons, rng)
             synth = simulate_worm(template, rng, TRAIN_SIM)
             m = len(template)
             target = np.where(synth.origin >= 0, synth.origin, m)
             test = synth.table
+        elif atlas is not None and u < cfg.synthetic_fraction + cfg.panel_fraction:
+            template = atlas_worm(atlas, rng)  # whole, like the panel's templates
+            test = _crop(_augment(worms[rng.integers(len(worms))].table, rng), cfg.max_neurons, rng)
+            target = _targets(template, test)
+            placement = {"atlas": atlas}
         else:
             i, j = rng.choice(len(worms), 2, replace=False)
             template = _crop(_augment(worms[i].table, rng), cfg.max_neurons, rng)
             test = _crop(_augment(worms[j].table, rng), cfg.max_neurons, rng)
             target = _targets(template, test)
-        example = make_example(template, test, target, rng, cfg)
+            placement = {"registered": rng.random() < cfg.registered_fraction}
+        example = make_example(template, test, target, rng, cfg, **placement)
         if example is not None:
             return example
 
@@ -233,19 +268,24 @@ def split_worms(worms: list[Worm], cfg: TrainConfig, rng) -> tuple[list[Worm], d
     return train, val
 
 
-def pair_accuracy(identifier, pairs: list[tuple[NeuronTable, NeuronTable]], use_colour: bool = False) -> dict:
-    """Top-1 (assignment) and top-3 on test neurons whose name the template also has."""
-    hit1 = hit3 = total = 0
-    for template, test in pairs:
-        result = identifier.label(test, [template], use_colour=use_colour)
-        names = set(template.names)
-        cand, _ = result.candidates(3)
-        for j, truth in enumerate(test.labels):
-            if truth and truth in names:
-                total += 1
-                hit1 += result.auto_id[j] == truth
-                hit3 += truth in cand[j]
-    return {"top1": hit1 / max(total, 1), "top3": hit3 / max(total, 1), "n": total}
+def _validate(identifier, val_pairs: dict[str, list], panel_tests: dict) -> dict[str, dict[str, float]]:
+    """Top-1 per lab: pairs position only, pairs with colour, and (labs in ``panel_tests``) the
+    panel with colour, scored as ``fdlc evaluate`` scores them."""
+    from .evaluate import Scores
+
+    out = {"val_top1": {}, "val_top1_colour": {}, "val_panel_top1": {}}
+    for lab, pairs in val_pairs.items():
+        for key, use_colour in (("val_top1", False), ("val_top1_colour", True)):
+            scores = Scores()
+            for template, test in pairs:
+                scores.add(identifier.label(test, [template], use_colour=use_colour), test, set(template.names))
+            out[key][lab] = round(scores.summary()["top1"], 4)
+    for lab, (panel, tests) in panel_tests.items():
+        scores = Scores()
+        for test in tests:
+            scores.add(identifier.label_panel(test, panel, use_colour=True), test, panel.names)
+        out["val_panel_top1"][lab] = round(scores.summary()["top1"], 4)
+    return out
 
 
 def validation_pairs(val: dict[str, list[Worm]], per_lab: int, rng) -> dict[str, list]:
@@ -291,6 +331,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
     worms = load_corpus(cfg.corpus)
     train_worms, val_worms = split_worms(worms, cfg, rng)
     val_pairs = validation_pairs(val_worms, cfg.val_pairs_per_lab, np.random.default_rng(cfg.seed + 1))
+    atlas = build_atlas(train_worms) if cfg.panel_fraction > 0 else None
+    own_pairs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
+    panel_tests = _panel_tests(worms, own_pairs, cfg.train_labs) if atlas is not None else {}
     log(f"training on {len(train_worms)} worms of {', '.join(cfg.train_labs)}; validating on "
         + ", ".join(f"{lab} ({len(p)} pairs)" for lab, p in val_pairs.items()))
 
@@ -316,7 +359,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
     progress = tqdm(range(first_step, cfg.steps + 1), desc="training", unit="step", disable=not sys.stderr.isatty())
     for step in progress:
         model.train()
-        examples = [sample_example(train_worms, rng, cfg) for _ in range(cfg.batch_size)]
+        examples = [sample_example(train_worms, rng, cfg, atlas) for _ in range(cfg.batch_size)]
         batch = collate(examples, torch, cfg.colour_dropout, rng)
         a, t, am, tm, target, negative, ac, tc = (x.to(device) for x in batch)
         colour = model.config["colour_channels"] > 0
@@ -334,15 +377,13 @@ def train(cfg: TrainConfig, log=print) -> dict:
         if step % cfg.eval_every == 0 or step == cfg.steps or out_of_time:
             model.eval()
             identifier = Identifier(model, settings, device)
-            scores = {lab: pair_accuracy(identifier, pairs) for lab, pairs in val_pairs.items()}
-            colour_scores = {lab: pair_accuracy(identifier, pairs, use_colour=True) for lab, pairs in val_pairs.items()}
-            # Keep the checkpoint best on average over the *training* labs' held-out worms,
-            # position-only and with colour: a held-out lab is watched, never used to choose.
-            own = [lab for lab in scores if lab in cfg.train_labs] or list(scores)
-            mean = float(np.mean([d[lab]["top1"] for d in (scores, colour_scores) for lab in own])) if scores else 0.0
-            entry = {"step": step, "minutes": round(elapsed, 2), "loss": float(np.mean(running)),
-                     "val_top1": {k: round(v["top1"], 4) for k, v in scores.items()},
-                     "val_top1_colour": {k: round(v["top1"], 4) for k, v in colour_scores.items()},
+            scores = _validate(identifier, val_pairs, panel_tests)
+            # Keep the checkpoint best on average over the *training* labs' held-out worms
+            # (pairs position only and with colour, the panel with colour when it is trained):
+            # a held-out lab is watched, never used to choose.
+            own = [lab for lab in scores["val_top1"] if lab in cfg.train_labs] or list(scores["val_top1"])
+            mean = float(np.mean([d[lab] for d in scores.values() for lab in own if lab in d])) if own else 0.0
+            entry = {"step": step, "minutes": round(elapsed, 2), "loss": float(np.mean(running)), **scores,
                      "mean_top1": round(mean, 4)}
             history.append(entry)
             running = []
@@ -384,13 +425,10 @@ def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, extra:
     return settings
 
 
-PANEL_MIRROR_PRIOR = 1.0  # the panel's prior against a mirrored placement (see calibrate)
-
-
 def _panel_tests(corpus: list[Worm], val_pairs: dict[str, list], train_labs) -> dict[str, tuple]:
     """Per training lab: the built-in panel rebuilt from the *other* training labs' worms, and
     that lab's validation worms to identify with it (as the panel protocol scores a new lab)."""
-    from .reference import build_atlas, make_panel
+    from .reference import make_panel
 
     out = {}
     for lab, pairs in val_pairs.items():
@@ -403,44 +441,41 @@ def _panel_tests(corpus: list[Worm], val_pairs: dict[str, list], train_labs) -> 
 
 def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: dict | None = None) -> dict:
     """Fit the inference settings that are not learned by gradient descent, on validation
-    pairs of the *training* labs: the prior against mirrored recordings and the weight of
-    leaving a neuron unnamed (top-1, position only),
-    the colour fusion weight (top-1 with colour), then the temperature that minimises the
-    expected calibration error of ``auto_conf``. With ``panel_tests`` (see _panel_tests), the
-    panel's temperature and chirality doubt (calibration error); its mirror prior is fixed."""
-    # Every setting fitted here acts after the model's forward passes and the panel's
-    # registrations: compute those once (instance attributes shadow the methods until the end).
-    forward, cache = identifier._forward_many, {}
+    pairs of the *training* labs: the weight of leaving a neuron unnamed (top-1, position
+    only), the colour fusion weight (top-1 with colour), then the temperature that minimises
+    the expected calibration error of ``auto_conf``. With ``panel_tests`` (see _panel_tests),
+    the panel's temperature and chirality doubt (calibration error). The prior against a
+    mirrored placement is not fitted (identify.MIRROR_PRIOR)."""
+    # Every setting fitted here acts after the registrations and the model's forward passes:
+    # compute those once (instance attributes shadow the methods until the end).
+    cache = {}
 
-    def cached_forward(template_xyz, tests, template_colour=None, test_colours=None):
-        key = (template_xyz.tobytes(), tuple(t.tobytes() for t in tests), template_colour is not None)
-        if key not in cache:
-            cache[key] = forward(template_xyz, tests, template_colour, test_colours)
-        return cache[key]
+    def cached(method, key):
+        def call(*args, **kwargs):
+            k = (id(method), *key(*args, **kwargs))
+            if k not in cache:
+                cache[k] = method(*args, **kwargs)
+            return cache[k]
+        return call
 
-    def cached_register(atlas):
-        register = atlas.register
-
-        def cached(test, use_colour=True):
-            key = ("register", id(atlas), id(test), use_colour)
-            if key not in cache:
-                cache[key] = register(test, use_colour)
-            return cache[key]
-        return cached
-
-    identifier._forward_many = cached_forward
-    for panel, _ in (panel_tests or {}).values():
-        panel.atlas.register = cached_register(panel.atlas)
+    patched = [(identifier, "_forward_many", lambda xyz, tests, tc=None, sc=None: (
+                   xyz.tobytes(), tuple(t.tobytes() for t in tests), tc is not None)),
+               (identifier, "place", lambda template, tests, use_colour=True: (
+                   id(template), tuple(map(id, tests)), use_colour))]
+    patched += [(panel.atlas, "register", lambda test, use_colour=True: (id(test), use_colour))
+                for panel, _ in (panel_tests or {}).values()]
+    for owner, name, key in patched:
+        setattr(owner, name, cached(getattr(owner, name), key))
     try:
         return _fit_settings(identifier, val_pairs, log, panel_tests)
     finally:
-        del identifier._forward_many
-        for panel, _ in (panel_tests or {}).values():
-            del panel.atlas.register
+        for owner, name, _ in patched:
+            delattr(owner, name)
 
 
 def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict | None) -> dict:
     from .evaluate import Scores
+    from .identify import MIRROR_PRIOR
 
     def run(use_colour):
         scores = Scores()
@@ -460,7 +495,11 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
             log(f"calibrate: {name} {value}: {results[-1]:.3f}")
         setattr(settings, name, values[int(np.argmax(results))])
 
-    choose("mirror_penalty", (0.0, 0.05, 0.1, 0.2, 0.4, 1.0), lambda: run(False).summary()["top1"])
+    # Not fitted: on worms it has not seen, the model's preference between the two placements
+    # is noise (model_card.md). Fitting it on these validation worms (some of them seen in
+    # training) gave 0.1 to 1.0 by fold, and where it trusted the model the held-out lab lost
+    # up to 23 points.
+    settings.mirror_penalty = MIRROR_PRIOR
     choose("no_match_weight", (0.05, 0.2, 0.5, 1.0), lambda: run(False).summary()["top1"])
     choose("colour_weight", (0.0, 0.25, 0.5, 1.0), lambda: run(True).summary()["top1"])
     # lowest expected calibration error, position only and with colour
@@ -475,13 +514,6 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
         return scores
 
     if panel_tests:
-        # Not fitted: on worms it has not seen, the model's preference between the two
-        # placements is noise (model_card.md), so the panel keeps the atlas's handedness unless
-        # told. Fitting it on these validation worms (some of them seen in training) gave 0.1
-        # to 1.0 by fold, and where it trusted the model the held-out lab lost up to 23 points
-        # (EY fold: 45.6 % vs 68.3 %); on a worm generated from the atlas the model preferred
-        # the mirrored placement by 0.13 (the demo named every left/right pair backwards).
-        settings.panel_mirror_penalty = PANEL_MIRROR_PRIOR
         # temperature and doubt interact: a joint grid
         grid = [(d, t) for d in (0.0, 0.15, 0.3) for t in (0.25, 0.35, 0.5, 0.7, 1.0, 1.4)]
         results = []
