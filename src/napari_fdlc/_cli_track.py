@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reference-t", action="append", default=[], metavar="T",
                         help="use the volume at time point T of the sequence as a reference (repeatable)")
     parser.add_argument("--search", choices=("propagate", "full"), default="propagate",
-                        help="propagate (default): full orientation search on the first volume only, then "
+                        help="propagate (default): full search (registration) on the first volume only, then "
                         "each volume is placed from the one before; full: search every volume (slower)")
     parser.add_argument("--placement", choices=("geometry", "model"), default="geometry",
                         help="how a volume is placed from the one before (default geometry: cheap, lets volumes batch)")

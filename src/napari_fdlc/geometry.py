@@ -2,10 +2,12 @@
 
 A worm lies at any angle in XY, on either side, or (as some labs image) dorso-ventrally. We
 remove what can be removed without names (centre on the median, rotate XY so the principal axis
-is x) and enumerate what cannot: four rolls about the body axis by 90° times the two directions
-of the head (16 with the next factor), times the two chiralities (a recording mirrored in z by
-its acquisition convention). Which of the eight is right is decided by the matcher's score, never by making the
-model mirror-invariant: a mirror swaps left and right neurons.
+is x). What cannot be removed is enumerated here: four rolls about the body axis by 90° times
+the two directions of the head, times the two chiralities (a recording mirrored in z by its
+acquisition convention) — 16 orientations. Training uses them (the true one, found from the
+names, and wrong ones as negatives) and so does the CPD baseline; inference registers the test
+onto its reference instead (:mod:`napari_fdlc.register`), which finds any roll. The model is
+never made mirror-invariant: a mirror swaps left and right neurons.
 """
 
 from __future__ import annotations
