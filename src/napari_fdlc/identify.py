@@ -27,6 +27,7 @@ from . import colour as colour_model
 from .errors import FdlcError, ModelError, warn
 from .geometry import CHIRALITIES, apply_affine, compose_affine, fit_affine
 from .match import Labelling, make_labelling, name_probabilities
+from .register import register, template_mixture
 from .table import NeuronTable
 
 if TYPE_CHECKING:
@@ -211,19 +212,17 @@ class Identifier:
         """The template in its canonical frame, and each test registered onto it
         (:func:`napari_fdlc.register.register`), one placement per chirality the settings allow:
         (template xyz, starts (K_v, N_v, 3) per test, mirrored flags (K_v,) per test)."""
-        from .register import register, template_mixture
-
         mixture = template_mixture(template)
         starts, mirrored = [], []
         for test in tests:
-            placements = [p for p in register(test, mixture, use_colour) if self._allows(p.mirrored)]
+            placements = register(test, mixture, use_colour, chiralities=self._chiralities())
             starts.append(np.stack([p.xyz for p in placements]))
             mirrored.append(np.array([p.mirrored for p in placements]))
         return mixture.mean, starts, mirrored
 
-    def _allows(self, mirrored: bool) -> bool:
-        """Whether the chirality setting lets a (mirrored or proper) placement be tried."""
-        return self.settings.chirality == "auto" or mirrored == (self.settings.chirality == "mirrored")
+    def _chiralities(self) -> tuple[bool, ...]:
+        """The placements the chirality setting lets be tried: mirrored or not."""
+        return {"auto": (False, True), "same": (False,), "mirrored": (True,)}[self.settings.chirality]
 
     def match_pair(
         self, template: NeuronTable, test: NeuronTable, use_colour: bool = True, fixed: dict[int, str] | None = None,
@@ -326,7 +325,7 @@ class Identifier:
         when there are any, else the one the model is most willing to match (minus the panel's
         mirror prior fitted on the training labs)."""
         use_colour = self._check(test, panel.templates, use_colour)
-        placements = [p for p in panel.atlas.register(test, use_colour) if self._allows(p.mirrored)]
+        placements = panel.atlas.register(test, use_colour, self._chiralities())
         tc_sc = [self._model_colours(t, [test], use_colour) for t in panel.templates]
         per_candidate = [  # per template: (placements, N, M + 1)
             np.stack(self._forward_many(t.xyz, [p.xyz for p in placements], tc, None if sc is None else sc * len(placements)))

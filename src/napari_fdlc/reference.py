@@ -65,9 +65,9 @@ class Atlas:
         return Mixture(self.mean, self.sd**2 + _REGISTRATION_SD**2, np.log(np.maximum(self.frequency, 1e-6)),
                        self.colour, self.colour_sd**2, scale_range=(0.8, 1.25))
 
-    def register(self, test: NeuronTable, use_colour: bool = True) -> list[Placement]:
-        """``test`` placed in the atlas frame, once per chirality (proper first, then mirrored)."""
-        return register(test, self.mixture(), use_colour)
+    def register(self, test: NeuronTable, use_colour: bool = True, chiralities=(False, True)) -> list[Placement]:
+        """``test`` placed in the atlas frame, once per chirality (see napari_fdlc.register.register)."""
+        return register(test, self.mixture(), use_colour, chiralities=chiralities)
 
     def to_frame(self) -> pd.DataFrame:
         df = pd.DataFrame({"name": self.names})

@@ -69,9 +69,11 @@ def template_mixture(template: NeuronTable) -> Mixture:
     return Mixture(mean, np.full_like(mean, TEMPLATE_SD**2), np.zeros(len(mean)), colour, colour_var)
 
 
-def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, iterations: int = 6, keep: int = 3) -> list[Placement]:
-    """Place ``test`` in the mixture's frame, once per chirality (proper first, then mirrored):
-    the ``keep`` best of the starting poses by likelihood, ``iterations`` EM steps each."""
+def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, iterations: int = 6, keep: int = 3,
+             chiralities: tuple[bool, ...] = (False, True)) -> list[Placement]:
+    """Place ``test`` in the mixture's frame, once per chirality (``chiralities``: mirrored or
+    not; default proper first, then mirrored): the ``keep`` best of the starting poses by
+    likelihood, ``iterations`` EM steps each."""
     canon = canonical_frame(test.xyz)[0]
     var = mixture.var
     log_weight = mixture.log_weight - 0.5 * np.log(var).sum(axis=1)
@@ -94,11 +96,12 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         inner = np.exp(comp - top[..., None]).sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - top)
         return top + np.log(inner)
 
-    starts = np.einsum("kij,nj->kni", _START_ROTATIONS, canon)
+    tried = np.isin(_START_MIRRORED, chiralities)
+    starts = np.einsum("kij,nj->kni", _START_ROTATIONS[tried], canon)
     coarse = total(log_components(starts)).sum(axis=1)
     placements = []
-    for mirrored in (False, True):
-        chosen = np.flatnonzero(_START_MIRRORED == mirrored)
+    for mirrored in chiralities:
+        chosen = np.flatnonzero(_START_MIRRORED[tried] == mirrored)
         best = None
         for k in chosen[np.argsort(-coarse[chosen])[:keep]]:
             points = starts[k]

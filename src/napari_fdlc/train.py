@@ -162,7 +162,7 @@ def make_example(template: NeuronTable, test: NeuronTable, target: np.ndarray, r
     negative = False
     if atlas is not None or registered:
         mixture = atlas.mixture() if atlas is not None else template_mixture(template)
-        b = register(test, mixture)[int(true >= N_PROPER)].xyz
+        b = register(test, mixture, chiralities=(bool(true >= N_PROPER),))[0].xyz
         return _example(a, b, target, negative, template, test)
     u = rng.random()
     if u < cfg.negative_fraction:
@@ -462,7 +462,7 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
                    xyz.tobytes(), tuple(t.tobytes() for t in tests), tc is not None)),
                (identifier, "place", lambda template, tests, use_colour=True: (
                    id(template), tuple(map(id, tests)), use_colour))]
-    patched += [(panel.atlas, "register", lambda test, use_colour=True: (id(test), use_colour))
+    patched += [(panel.atlas, "register", lambda test, use_colour=True, chiralities=(False, True): (id(test), use_colour, chiralities))
                 for panel, _ in (panel_tests or {}).values()]
     for owner, name, key in patched:
         setattr(owner, name, cached(getattr(owner, name), key))
