@@ -91,30 +91,30 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         # the Mahalanobis distance expanded into matrix products (10× faster than broadcasting)
         return -0.5 * (points**2) @ inv_var.T + points @ (mixture.mean * inv_var).T + constant
 
-    def total(comp):  # per-point log-likelihood with a uniform outlier class (spurious neurons)
+    def posterior(comp):  # (..., N, K) responsibilities and (..., N) log-likelihood per point, with a
+        # uniform outlier class (a neuron the reference lacks, a spurious detection)
         top = np.maximum(comp.max(axis=-1), _OUTLIER_LOG_DENSITY)
-        inner = np.exp(comp - top[..., None]).sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - top)
-        return top + np.log(inner)
+        density = np.exp(comp - top[..., None])
+        inner = density.sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - top)
+        return density / inner[..., None], top + np.log(inner)
 
     tried = np.isin(_START_MIRRORED, chiralities)
+    mirrored = _START_MIRRORED[tried]
     starts = np.einsum("kij,nj->kni", _START_ROTATIONS[tried], canon)
-    coarse = total(log_components(starts)).sum(axis=1)
+    coarse = posterior(log_components(starts))[1].sum(axis=-1)
+    chosen = np.concatenate([np.flatnonzero(mirrored == m)[np.argsort(-coarse[mirrored == m])[:keep]] for m in chiralities])
+    points = starts[chosen]  # EM from every kept start at once: (S, N, 3)
+    for _ in range(iterations):
+        resp = posterior(log_components(points))[0]
+        weight = resp.sum(axis=-1)
+        targets = (resp @ mixture.mean) / np.maximum(weight[..., None], 1e-12)
+        points = _weighted_similarity(points, targets, weight, mixture.scale_range)
+    scores = posterior(log_components(points))[1].mean(axis=-1)
     placements = []
-    for mirrored in chiralities:
-        chosen = np.flatnonzero(_START_MIRRORED[tried] == mirrored)
-        best = None
-        for k in chosen[np.argsort(-coarse[chosen])[:keep]]:
-            points = starts[k]
-            for _ in range(iterations):
-                comp = log_components(points)
-                resp = np.exp(comp - total(comp)[:, None])
-                weight = resp.sum(axis=1)
-                targets = (resp @ mixture.mean) / np.maximum(weight[:, None], 1e-12)
-                points = _weighted_similarity(points, targets, weight, mixture.scale_range)
-            score = float(total(log_components(points)).mean())
-            if best is None or score > best.score:
-                best = Placement(points, mirrored, score)
-        placements.append(best)
+    for m in chiralities:
+        own = np.flatnonzero(mirrored[chosen] == m)
+        k = own[np.argmax(scores[own])]
+        placements.append(Placement(points[k], bool(m), float(scores[k])))
     return placements
 
 
@@ -139,13 +139,16 @@ _START_ROTATIONS, _START_MIRRORED = _start_rotations()
 
 
 def _weighted_similarity(points: np.ndarray, targets: np.ndarray, weight: np.ndarray, scale_range) -> np.ndarray:
-    """``points`` moved by the weighted least-squares proper similarity onto ``targets``, the
-    scale clipped to ``scale_range`` (a cropped field of view must not shrink the worm)."""
-    w = weight / max(weight.sum(), 1e-12)
-    mu_p, mu_t = w @ points, w @ targets
-    p0, t0 = points - mu_p, targets - mu_t
-    u, sig, vt = np.linalg.svd((p0 * w[:, None]).T @ t0)
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
-    rotation = u @ d @ vt  # targets ≈ p0 @ rotation
-    scale = np.clip(np.trace(np.diag(sig) @ d) / max((w[:, None] * p0**2).sum(), 1e-12), *scale_range)
-    return scale * p0 @ rotation + mu_t
+    """``points`` (S, N, 3) each moved by the weighted least-squares proper similarity onto
+    ``targets`` (S, N, 3), weights (S, N); the scale clipped to ``scale_range`` (a cropped field
+    of view must not shrink the worm)."""
+    w = weight / np.maximum(weight.sum(axis=-1, keepdims=True), 1e-12)
+    mu_p, mu_t = np.einsum("sn,snd->sd", w, points), np.einsum("sn,snd->sd", w, targets)
+    p0, t0 = points - mu_p[:, None], targets - mu_t[:, None]
+    u, sig, vt = np.linalg.svd(np.einsum("sni,snj->sij", p0 * w[..., None], t0))
+    d = np.ones_like(sig)
+    d[:, 2] = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
+    rotation = (u * d[:, None, :]) @ vt  # targets ≈ p0 @ rotation, a proper rotation
+    spread = np.maximum((w[..., None] * p0**2).sum(axis=(-1, -2)), 1e-12)
+    scale = np.clip((sig * d).sum(axis=-1) / spread, *scale_range)
+    return scale[:, None, None] * p0 @ rotation + mu_t[:, None]
