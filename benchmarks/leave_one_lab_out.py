@@ -1,13 +1,18 @@
 """Leave-one-lab-out: one fold model per lab, trained without it and scored on it.
 
     python benchmarks/leave_one_lab_out.py --train --minutes 20    # train the five folds, then score
+    python benchmarks/leave_one_lab_out.py --stage2 25             # then stage 2 of every fold, then score
     python benchmarks/leave_one_lab_out.py                         # score folds already trained
     python benchmarks/leave_one_lab_out.py --recalibrate           # refit their inference settings first
 
-Each fold is ``fdlc train --train-labs <the other four> --colour-input --minutes M --threads 1
---steps 5000 --eval-every 1000 --val-pairs-per-lab 6 --out runs/fold_<LAB>/model`` (checkpoint
-choice and calibration on the four training labs only), then ``fdlc evaluate --labs <LAB>
---weights runs/fold_<LAB>/model`` (the panel's atlas is rebuilt without the lab too). Writes
+Stage 1 of each fold is ``fdlc train --train-labs <the other four> --colour-input --minutes M
+--threads 1 --steps 5000 --eval-every 1000 --val-pairs-per-lab 6 --out runs/fold_<LAB>/model``.
+Stage 2 (``--stage2 M``) warm-starts from it with the examples inference now shows the model
+(registered pairs and panel examples): ``fdlc train --config docs/training/fold_stage2.json
+--train-labs <the other four> --init-from runs/fold_<LAB>/model --minutes M --out
+runs/regfold_<LAB>/model``; scoring then uses ``runs/regfold_<LAB>`` (``--fold-prefix``).
+Checkpoint choice and calibration use the four training labs only. Then ``fdlc evaluate --labs
+<LAB> --weights <fold>/model`` (the panel's atlas is rebuilt without the lab too). Writes
 docs/leave_one_lab_out.md: every protocol per lab, next to the published figures.
 """
 
@@ -55,30 +60,38 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", default="runs", help="folder of the fold models (runs/fold_<LAB>/model)")
     ap.add_argument("--train", action="store_true", help="train the folds first")
     ap.add_argument("--minutes", type=float, default=20)
+    ap.add_argument("--stage2", type=float, default=None, metavar="MINUTES",
+                    help="train stage 2 of each fold (docs/training/fold_stage2.json) for this long, then score it")
+    ap.add_argument("--fold-prefix", default=None, help="fold folders <runs>/<prefix>_<LAB> (default: regfold with --stage2, else fold)")
     ap.add_argument("--recalibrate", action="store_true",
                     help="refit each fold's inference settings with the current code (on its training labs) before scoring")
     ap.add_argument("--no-evaluate", action="store_true", help="only collect existing fold reports")
     ap.add_argument("--out", default="docs/leave_one_lab_out.md")
     args = ap.parse_args(argv)
     runs = Path(args.runs)
+    prefix = args.fold_prefix or ("regfold" if args.stage2 else "fold")
     for lab in args.labs:
-        fold = runs / f"fold_{lab}"
+        first, fold = runs / f"fold_{lab}", runs / f"{prefix}_{lab}"
+        others = [x for x in LABS if x != lab]
         if args.train:
-            others = [x for x in LABS if x != lab]
             fdlc(["train", "--train-labs", *others, "--val-labs", *LABS, "--colour-input", "--minutes", str(args.minutes),
                   "--threads", "1", "--eval-every", "1000", "--val-pairs-per-lab", "6", "--steps", "5000",
-                  "--out", str(fold / "model")])
+                  "--out", str(first / "model")])
+        if args.stage2:
+            config = Path(__file__).resolve().parents[1] / "docs/training/fold_stage2.json"
+            fdlc(["train", "--config", str(config), "--train-labs", *others, "--init-from", str(first / "model"),
+                  "--minutes", str(args.stage2), "--out", str(fold / "model")])
         if args.recalibrate:
             fdlc(["train", "--config", str(fold / "model.json"), "--threads", "1", "--out", str(fold / "model"), "--calibrate-only"])
         if not args.no_evaluate:
             fdlc(["evaluate", "--labs", lab, "--weights", str(fold / "model"), "--pairs-per-lab", "20",
-                  "--panel-worms-per-lab", "8", "--synthetic-pairs", "0", "--out", str(runs / f"fold_{lab}_accuracy.md")])
+                  "--panel-worms-per-lab", "8", "--synthetic-pairs", "0", "--out", str(runs / f"{prefix}_{lab}_accuracy.md")])
     head = "| held-out lab | " + " | ".join(name for _, name in COLUMNS) + " | published LOLO fDLC | best published |"
     lines = [head, "|" + "---|" * (len(COLUMNS) + 3)]
     ece = ["| held-out lab | pairs: fdlc position | pairs: fdlc + colour | panel: position | panel: colour | panel: colour, handedness given |",
            "|---|---|---|---|---|---|"]
     for lab in args.labs:
-        report = read_report(runs / f"fold_{lab}_accuracy.md", lab)
+        report = read_report(runs / f"{prefix}_{lab}_accuracy.md", lab)
         cells = [f"{report[key][0]:.1f} / {report[key][1]:.1f}" if key in report else "–" for key, _ in COLUMNS]
         lines.append(f"| {lab} | " + " | ".join(cells) + f" | {PUBLISHED_LOLO_FDLC.get(lab, '–')} | {PUBLISHED_BEST.get(lab, '–')} |")
         keys = [("pairs", "fdlc", "position"), ("pairs", "fdlc", "colour"), ("panel", "fdlc", "position"),
@@ -88,6 +101,8 @@ def main(argv=None) -> int:
     with atomic_write(args.out, "w", encoding="utf-8") as handle:
         handle.write("# Leave-one-lab-out\n\nMade by `python benchmarks/leave_one_lab_out.py"
                      + (f" --train --minutes {args.minutes:g}" if args.train else "")
+                     + (f" --stage2 {args.stage2:g}" if args.stage2 else "")
+                     + (f" --fold-prefix {args.fold_prefix}" if args.fold_prefix else "")
                      + (" --recalibrate" if args.recalibrate else "") + "` (see its docstring for the"
                      " exact commands; how to read it: benchmarks.md). Top-1 / top-3 %, each lab scored with the"
                      " fold model that never saw it: trained on the other four labs, checkpoint and inference"

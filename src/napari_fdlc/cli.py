@@ -135,7 +135,7 @@ def _run_train(args) -> int:
         calibrate_checkpoint(cfg)
         return 0
     result = train(cfg)
-    print(f"best mean validation top-1 {result['best_mean_top1']:.3f} after {result['minutes']:.1f} min; weights at {args.out}.safetensors")
+    print(f"best mean validation top-1 {result['best_mean_top1']:.3f} after {result['minutes']:.1f} min; weights at {cfg.out}.safetensors")
     return 0
 
 
