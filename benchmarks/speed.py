@@ -6,16 +6,17 @@ Latency is the median wall time for one test volume (~130 neurons) from tables i
 one-to-one assignment and the top-3 candidates done, model loaded and warm. "Batched" is
 volumes per second when many volumes are given at once. Configurations:
 
-* full, 1 template: orientation and chirality search (every orientation of
-  ``geometry.ORIENTATIONS``) + affine refinement +
-  colour, what ``fdlc label --template T`` does, i.e. the configuration of the accuracy figures;
+* full, 1 template: registration onto the template (``register.py``, both chiralities), the
+  model on the two placements, chirality choice, colour, what ``fdlc label --template T`` does,
+  i.e. the configuration of the accuracy figures;
 * full, panel: the built-in reference panel, what Auto-label does: the test placed in the atlas
   frame (registration, both chiralities), then 5 templates × 2 chiralities through the model;
-* track: ``fdlc track`` defaults (full search on the first volume only; every later volume placed
+* track: ``fdlc track`` defaults (full search, as above, on the first volume only; every later volume placed
   by the warp of the one before, one model pass, assignment); latency = one volume at a time
   (chunk 1, what a live recording needs), batched = chunk 16; the first volume's search is
   included in the average;
-* CPD: ``baselines.cpd_match`` (every orientation) + the same assignment and candidates.
+* CPD: ``baselines.cpd_match`` (every orientation of ``geometry.ORIENTATIONS``) + the same
+  assignment and candidates.
 
 Peak memory: Python/numpy allocations (tracemalloc) during one run of each configuration, and
 the process's peak resident size at the end (``ru_maxrss``; includes torch itself). With CUDA,
