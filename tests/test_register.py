@@ -50,3 +50,18 @@ def test_registration_onto_a_template_keeps_its_scale():
         placements = register(_posed(worm, roll, mirrored, rng), mixture)
         error = np.linalg.norm(placements[int(mirrored)].xyz - mixture.mean, axis=1)
         assert np.median(error) < 1.0, (roll, mirrored, np.median(error))
+
+
+def test_every_start_gives_each_kept_pose_and_the_default_is_the_likeliest():
+    rng = np.random.default_rng(4)
+    worm = atlas_worm(load_atlas(), rng)
+    mixture = template_mixture(worm)
+    test = _posed(worm, 100, False, rng)
+    every = register(test, mixture, keep=3, every_start=True)
+    assert [p.mirrored for p in every] == [False] * 3 + [True] * 3
+    best = register(test, mixture, keep=3)
+    for chosen in best:
+        own = [p for p in every if p.mirrored == chosen.mirrored]
+        assert chosen.score == max(p.score for p in own)
+        assert any(np.array_equal(chosen.xyz, p.xyz) for p in own)
+    assert [p.mirrored for p in register(test, mixture, chiralities=(True,))] == [True]

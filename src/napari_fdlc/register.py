@@ -70,10 +70,11 @@ def template_mixture(template: NeuronTable) -> Mixture:
 
 
 def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, iterations: int = 6, keep: int = 3,
-             chiralities: tuple[bool, ...] = (False, True)) -> list[Placement]:
+             chiralities: tuple[bool, ...] = (False, True), every_start: bool = False) -> list[Placement]:
     """Place ``test`` in the mixture's frame, once per chirality (``chiralities``: mirrored or
     not; default proper first, then mirrored): the ``keep`` best of the starting poses by
-    likelihood, ``iterations`` EM steps each."""
+    likelihood, ``iterations`` EM steps each, the most likely result per chirality — or, with
+    ``every_start``, every start's result (``keep`` per chirality) for the caller to choose."""
     canon = canonical_frame(test.xyz)[0]
     var = mixture.var
     log_weight = mixture.log_weight - 0.5 * np.log(var).sum(axis=1)
@@ -110,6 +111,8 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         targets = (resp @ mixture.mean) / np.maximum(weight[..., None], 1e-12)
         points = _weighted_similarity(points, targets, weight, mixture.scale_range)
     scores = posterior(log_components(points))[1].mean(axis=-1)
+    if every_start:
+        return [Placement(p, bool(m), float(s)) for p, m, s in zip(points, mirrored[chosen], scores)]
     placements = []
     for m in chiralities:
         own = np.flatnonzero(mirrored[chosen] == m)

@@ -292,10 +292,10 @@ def _model_colours(identifier, ref: _Reference, volumes: list[NeuronTable], s: T
 def _full_search(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings) -> list[tuple]:
     """(log p, placement) of each volume registered onto the reference, the chirality chosen as
     ``fdlc label`` chooses it (no refinement)."""
-    a, starts, mirrored = identifier.place(ref.table, volumes, s.use_colour)
+    a, starts, _, priors = identifier.place(ref.table, volumes, s.use_colour)
     tc, sc = _model_colours(identifier, ref, volumes, s)
     extra = {} if tc is None else {"template_colour": tc, "test_colours": sc}
-    return [(f["log_p"], f["moved"]) for f in identifier._align(a, starts, 0, mirrored=mirrored, **extra)]
+    return [(f["log_p"], f["moved"]) for f in identifier._align(a, starts, 0, prior=priors, **extra)]
 
 
 def _placed(identifier, ref: _Reference, volumes: list[NeuronTable], warps: list[Warp], s: TrackSettings) -> list[tuple]:
