@@ -4,9 +4,11 @@ test ──► registration onto the reference ──► model ──► chirali
          (register.py: the template, or         (one placement    fusion        (match.name_probabilities,
           the atlas for the built-in panel)      per chirality)                  match.assign)
 
-Registration finds the pose (any roll about the body axis, either head direction); the model
-then scores the proper and the mirrored placement, and a prior keeps the reference's
-handedness unless the model, a name the user fixed or ``--chirality`` says otherwise.
+Registration finds candidate poses (any roll about the body axis, either head direction, both
+chiralities); the model scores them, and the pose chosen is the one with the best sum of the
+model's willingness to match and the registration's likelihood, with a prior that keeps the
+reference's handedness unless the model, a name the user fixed or ``--chirality`` says
+otherwise. The panel registers onto the atlas and keeps the likeliest pose per chirality.
 
 The model is loaded once; :meth:`Identifier.label` may be called for as many tests as needed.
 torch is imported here only when an :class:`Identifier` is made, so ``import napari_fdlc`` and

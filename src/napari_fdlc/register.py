@@ -12,8 +12,9 @@ over the five leave-one-lab-out folds (docs/leave_one_lab_out.md).
 
 Neither chirality can be ruled out here: the head is nearly left/right symmetric and NeuroPAL
 colours are shared by left/right pairs, so a mirrored worm fits almost as well (measured: the
-likelihood difference has a random sign). :func:`register` returns one placement per
-chirality and the caller decides (a prior, the model's score, or a name the user fixed).
+likelihood difference has a random sign). :func:`register` returns the likeliest placement
+per chirality (or every start's, ``every_start``) and the caller decides (a prior, the model's
+score, or a name the user fixed).
 """
 
 from __future__ import annotations
