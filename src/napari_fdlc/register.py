@@ -7,7 +7,7 @@ test's points to it, with a uniform outlier class for neurons the reference lack
 ``ROLL_STEPS`` rolls about the body axis × 2 head directions per chirality. Unlike the 16
 right-angle orientations of ``geometry.ORIENTATIONS`` this finds rolls that are not right
 angles, and it does not ask the model to judge orientations it was not trained on: between
-worms of a lab the model never saw, it took pairs with colour from 37 to 49 % top-1 averaged
+worms of a lab the model never saw, it took pairs with colour from 37 to 50 % top-1 averaged
 over the five leave-one-lab-out folds (docs/leave_one_lab_out.md).
 
 Neither chirality can be ruled out here: the head is nearly left/right symmetric and NeuroPAL
