@@ -65,3 +65,30 @@ def test_every_start_gives_each_kept_pose_and_the_default_is_the_likeliest():
         assert chosen.score == max(p.score for p in own)
         assert any(np.array_equal(chosen.xyz, p.xyz) for p in own)
     assert [p.mirrored for p in register(test, mixture, chiralities=(True,))] == [True]
+
+
+def test_a_partial_field_of_view_is_searched_along_the_body():
+    """A test that shows only one end of the head is started at offsets along the body axis
+    (the atlas spans the whole head) and lands where it belongs; a whole worm is not shifted."""
+    from dataclasses import replace
+
+    from napari_fdlc.geometry import canonical_frame
+    from napari_fdlc.register import partial_view_shifts
+
+    atlas = load_atlas()
+    rng = np.random.default_rng(5)
+    worm = atlas_worm(atlas, rng)
+    x = canonical_frame(worm.xyz)[0][:, 0]
+    # real worms are 1.1-1.7x the atlas's size (Procrustes shrinks it)
+    assert partial_view_shifts(1.3 * x, atlas.mean[:, 0], 0.8) == (0.0,)
+    index = {n: i for i, n in enumerate(atlas.names)}
+    end = -(x - np.median(x))
+    part = worm.subset(np.flatnonzero(end > np.quantile(end, 0.55)))
+    assert len(partial_view_shifts(canonical_frame(part.xyz)[0][:, 0], atlas.mean[:, 0], 0.8)) == 5
+    posed = _posed(part, 50, False, rng)
+    rows = [index[n] for n in part.labels]
+
+    def error(mixture):
+        return np.median(np.linalg.norm(register(posed, mixture)[0].xyz - atlas.mean[rows], axis=1))
+
+    assert error(atlas.mixture()) < 4.0 < 10.0 < error(replace(atlas.mixture(), partial_views=False))

@@ -33,6 +33,7 @@ ROLL_STEPS = 12  # starting rolls about the body axis (every 30°)
 TEMPLATE_SD = 3.35
 _COLOUR_VAR = 0.15  # added to each component's colour variance (normal-score units)
 _TEMPLATE_COLOUR_SD = 0.4  # one worm's colour against another's, same neuron
+_MIN_SHIFT_UM = 2.0  # below this, the starts' own EM steps cover the offset
 _OUTLIER_LOG_DENSITY = -15.0  # per point: a neuron the reference lacks (-7 fitted closer but scored worse)
 
 
@@ -49,6 +50,10 @@ class Mixture:
     # and needs some freedom; a template is in µm like the test, and a free scale let EM shrink
     # the test into the dense head (pairs top-1 with colour fell by 5–35 points).
     scale_range: tuple[float, float] = (1.0, 1.0)
+    # The reference spans the whole head (the atlas) while a test may show part of it: start
+    # also at offsets along the body axis (partial_view_shifts). Between two worms of a lab it
+    # cost SK1's pairs 4.6 points (their fields of view vary), so templates do not.
+    partial_views: bool = False
 
 
 @dataclass
@@ -75,8 +80,13 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     """Place ``test`` in the mixture's frame, once per chirality (``chiralities``: mirrored or
     not; default proper first, then mirrored): the ``keep`` best of the starting poses by
     likelihood, ``iterations`` EM steps each, the most likely result per chirality — or, with
-    ``every_start``, every start's result (``keep`` per chirality) for the caller to choose."""
+    ``every_start``, every start's result (``keep`` per chirality) for the caller to choose.
+    With ``mixture.partial_views``, a test that covers less of the body than the reference
+    also starts at several offsets along the body axis (:func:`partial_view_shifts`), and twice
+    as many starts are kept."""
     canon = canonical_frame(test.xyz)[0]
+    shifts = partial_view_shifts(canon[:, 0], mixture.mean[:, 0], mixture.scale_range[0]) if mixture.partial_views else (0.0,)
+    keep = keep if len(shifts) == 1 else 2 * keep
     var = mixture.var
     log_weight = mixture.log_weight - 0.5 * np.log(var).sum(axis=1)
     colour_term = 0.0
@@ -101,8 +111,9 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         return density / inner[..., None], top + np.log(inner)
 
     tried = np.isin(_START_MIRRORED, chiralities)
-    mirrored = _START_MIRRORED[tried]
-    starts = np.einsum("kij,nj->kni", _START_ROTATIONS[tried], canon)
+    mirrored = np.tile(_START_MIRRORED[tried], len(shifts))
+    turned = np.einsum("kij,nj->kni", _START_ROTATIONS[tried], canon)
+    starts = np.concatenate([turned + np.array([dx, 0.0, 0.0]) for dx in shifts])
     coarse = posterior(log_components(starts))[1].sum(axis=-1)
     chosen = np.concatenate([np.flatnonzero(mirrored == m)[np.argsort(-coarse[mirrored == m])[:keep]] for m in chiralities])
     points = starts[chosen]  # EM from every kept start at once: (S, N, 3)
@@ -120,6 +131,22 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         k = own[np.argmax(scores[own])]
         placements.append(Placement(points[k], bool(m), float(scores[k])))
     return placements
+
+
+def partial_view_shifts(test_x: np.ndarray, reference_x: np.ndarray, min_scale: float, steps: int = 5) -> tuple[float, ...]:
+    """Offsets along the body axis (µm) to start the registration from. Both are centred on
+    their own median, so a test that shows only part of the reference's body (a partial field
+    of view, e.g. SF's ~60-neuron recordings against the whole-head atlas) may sit anywhere
+    along it: starts spread over the length the test's extent leaves free, at the smallest
+    scale the fit allows. With the handedness given, this took the panel on SF from 25.8 to
+    42.5 % top-1 (leave-one-lab-out fold model); the other labs, whose worms span the
+    reference, moved by 0.3 points at most. A whole worm gets (0,)."""
+    def extent(x):
+        low, high = np.percentile(x, [5, 95])
+        return high - low
+
+    free = (extent(reference_x) - min_scale * extent(test_x)) / 2
+    return tuple(np.linspace(-free, free, steps)) if free > _MIN_SHIFT_UM else (0.0,)
 
 
 def _start_rotations() -> tuple[np.ndarray, np.ndarray]:
