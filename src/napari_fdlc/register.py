@@ -139,8 +139,8 @@ def partial_view_shifts(test_x: np.ndarray, reference_x: np.ndarray, min_scale: 
     of view, e.g. SF's ~60-neuron recordings against the whole-head atlas) may sit anywhere
     along it: starts spread over the length the test's extent leaves free, at the smallest
     scale the fit allows. With the handedness given, this took the panel on SF from 25.8 to
-    42.5 % top-1 (leave-one-lab-out fold model); the other labs, whose worms span the
-    reference, moved by 0.3 points at most. A whole worm gets (0,)."""
+    42.5 % top-1 (leave-one-lab-out fold model); the other labs moved by 0.3 points at most
+    with the same settings. A whole worm gets (0,)."""
     def extent(x):
         low, high = np.percentile(x, [5, 95])
         return high - low
