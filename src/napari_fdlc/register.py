@@ -103,26 +103,28 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         # the Mahalanobis distance expanded into matrix products (10× faster than broadcasting)
         return -0.5 * (points**2) @ inv_var.T + points @ (mixture.mean * inv_var).T + constant
 
-    def posterior(comp):  # (..., N, K) responsibilities and (..., N) log-likelihood per point, with a
-        # uniform outlier class (a neuron the reference lacks, a spurious detection)
+    def log_likelihood(comp):  # (..., N) per point, with a uniform outlier class (a neuron the
+        # reference lacks, a spurious detection)
         top = np.maximum(comp.max(axis=-1), _OUTLIER_LOG_DENSITY)
-        density = np.exp(comp - top[..., None])
-        inner = density.sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - top)
-        return density / inner[..., None], top + np.log(inner)
+        return top + np.log(np.exp(comp - top[..., None]).sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - top))
+
+    def responsibilities(comp):  # (..., N, K), the outlier class taking the rest
+        return np.exp(comp - log_likelihood(comp)[..., None])
 
     tried = np.isin(_START_MIRRORED, chiralities)
     mirrored = np.tile(_START_MIRRORED[tried], len(shifts))
     turned = np.einsum("kij,nj->kni", _START_ROTATIONS[tried], canon)
     starts = np.concatenate([turned + np.array([dx, 0.0, 0.0]) for dx in shifts])
-    coarse = posterior(log_components(starts))[1].sum(axis=-1)
+    # one offset at a time: the (starts, N, K) scores of every offset at once would take 100+ MB
+    coarse = np.concatenate([log_likelihood(log_components(turned + np.array([dx, 0.0, 0.0]))).sum(axis=-1) for dx in shifts])
     chosen = np.concatenate([np.flatnonzero(mirrored == m)[np.argsort(-coarse[mirrored == m])[:keep]] for m in chiralities])
     points = starts[chosen]  # EM from every kept start at once: (S, N, 3)
     for _ in range(iterations):
-        resp = posterior(log_components(points))[0]
+        resp = responsibilities(log_components(points))
         weight = resp.sum(axis=-1)
         targets = (resp @ mixture.mean) / np.maximum(weight[..., None], 1e-12)
         points = _weighted_similarity(points, targets, weight, mixture.scale_range)
-    scores = posterior(log_components(points))[1].mean(axis=-1)
+    scores = log_likelihood(log_components(points)).mean(axis=-1)
     if every_start:
         return [Placement(p, bool(m), float(s)) for p, m, s in zip(points, mirrored[chosen], scores)]
     placements = []
