@@ -4,7 +4,8 @@ The reference is a Gaussian mixture: the atlas (one component per name: its mean
 spread and colour; :meth:`napari_fdlc.reference.Atlas.mixture`) or a labelled template worm
 (one component per neuron; :func:`template_mixture`). EM fits a similarity transform of the
 test's points to it, with a uniform outlier class for neurons the reference lacks, from
-``ROLL_STEPS`` rolls about the body axis × 2 head directions per chirality. Unlike the 16
+``ROLL_STEPS`` rolls about the body axis × 2 head directions per chirality (and, against the
+atlas, offsets along the body axis for a partial field of view). Unlike the 16
 right-angle orientations of ``geometry.ORIENTATIONS`` this finds rolls that are not right
 angles, and it does not ask the model to judge orientations it was not trained on: between
 worms of a lab the model never saw, it took pairs with colour from 37 to 50 % top-1 averaged
