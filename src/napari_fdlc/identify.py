@@ -1,8 +1,8 @@
 """Identify the neurons of a test worm against one or more labelled templates.
 
-test ──► registration onto the reference ──► model ──► chirality ──► calibration, colour ──► names
-         (register.py: the template, or         (one placement    fusion        (match.name_probabilities,
-          the atlas for the built-in panel)      per chirality)                  match.assign)
+test ──► registration onto the reference ──► model on each ──► choice ──► calibration, ──► names
+         (register.py: the template, or          candidate pose               colour fusion    (match.name_probabilities,
+          the atlas for the built-in panel)                                                     match.assign)
 
 Registration finds candidate poses (any roll about the body axis, either head direction, both
 chiralities); the model scores them, and the pose chosen is the one with the best sum of the
@@ -36,9 +36,10 @@ if TYPE_CHECKING:
     from .reference import Panel
 
 WEIGHTS_NAME = "fdlc_model"
-# The prior against a mirrored placement that ships (see InferenceSettings.mirror_penalty): on
-# worms of labs it had not seen, fitting it let the model's noisy preference cost the EY fold
-# 23 points of panel top-1 (45.6 vs 68.3 %), and the demo worm was named mirrored.
+# The prior against a mirrored placement that ships (see InferenceSettings.mirror_penalty), not
+# fitted: on worms of labs it had not seen, the model's preference between the two placements
+# is noise. Fitted on validation worms it came out 0.1-1.0 by fold, and trusting the model cost
+# the EY fold 23 points of panel top-1 (45.6 vs 68.3 %); the demo worm was named mirrored.
 MIRROR_PRIOR = 1.0
 
 
@@ -245,18 +246,29 @@ class Identifier:
     ) -> list[tuple[np.ndarray, dict]]:
         """:meth:`match_pair` for many tests against one template, batched through the model
         (many volumes per second instead of one forward pass per volume)."""
-        a, starts, mirrored, priors = self.place(template, tests, use_colour)
-        tc, sc = self._model_colours(template, tests, use_colour)
-        found = self._align(a, starts, template_colour=tc, test_colours=sc, prior=priors)
+        found, model_saw_colour = self.search(template, tests, use_colour)
         out = []
-        for test, f, flags in zip(tests, found, mirrored):
+        for test, f in zip(tests, found):
             agreement = _agreement_with_fixed([f["all_log_p"]], [template], fixed)
             if agreement is not None and not self.settings.refine_steps:
                 f["best"] = int(np.argmax(agreement))
                 f["log_p"] = f["all_log_p"][f["best"]]
-            info = {"mirrored": bool(flags[f["best"]]), "willingness": f["willingness"].tolist()}
-            out.append((self._answer(f["log_p"], template, test, use_colour, tc is not None), info))
+            info = {"mirrored": bool(f["mirrored"][f["best"]]), "willingness": f["willingness"].tolist()}
+            out.append((self._answer(f["log_p"], template, test, use_colour, model_saw_colour), info))
         return out
+
+    def search(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True, refine_steps: int | None = None):
+        """The full search for many tests against one template: registration (:meth:`place`),
+        every candidate pose through the model in one batch, the choice, ``refine_steps``
+        refinements. Returns the per-test results of :meth:`_align` (plus ``mirrored``, the
+        candidates' flags) and whether the model took colour. ``fdlc label`` and the first
+        volume of ``fdlc track`` both start here."""
+        a, starts, mirrored, priors = self.place(template, tests, use_colour)
+        tc, sc = self._model_colours(template, tests, use_colour)
+        found = self._align(a, starts, refine_steps, tc, sc, prior=priors)
+        for f, flags in zip(found, mirrored):
+            f["mirrored"] = flags
+        return found, tc is not None
 
     def _answer(self, log_p: np.ndarray, template, test, use_colour: bool, model_saw_colour: bool) -> np.ndarray:
         """The model's log p for one placement -> calibrated probabilities (N, M + 1), colour fused."""
@@ -330,8 +342,8 @@ class Identifier:
         """Names from the built-in panel. The test is placed in the atlas frame once per
         chirality (:meth:`Atlas.register`); the panel's templates share that frame, so one
         chirality is chosen for all of them: the one agreeing with the user's ``fixed`` names
-        when there are any, else the one the model is most willing to match (minus the panel's
-        mirror prior fitted on the training labs)."""
+        when there are any, else the one the model is most willing to match, minus the fixed
+        prior against a mirrored placement (``mirror_penalty``)."""
         use_colour = self._check(test, panel.templates, use_colour)
         placements = panel.atlas.register(test, use_colour, self._chiralities())
         tc_sc = [self._model_colours(t, [test], use_colour) for t in panel.templates]

@@ -45,6 +45,7 @@ from .table import NeuronTable
 ATLAS_NAME = "atlas.csv"
 PANEL_SAMPLES = 4  # sampled worms added to the mean worm in the built-in panel
 PANEL_SEED = 0
+_REGISTRATION_SD = 1.5  # µm added to each name's spread when registering (Atlas.mixture)
 
 
 @dataclass
@@ -106,9 +107,6 @@ class Atlas:
             )
         except (OSError, KeyError, ValueError, IndexError) as exc:
             raise ModelError(f"{path}: not a valid atlas file ({exc})") from None
-
-
-_REGISTRATION_SD = 1.5  # µm added to each name's spread
 
 
 def _similarity(src: np.ndarray, dst: np.ndarray, allow_mirror: bool):

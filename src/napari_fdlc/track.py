@@ -16,7 +16,8 @@ before it. With ``placement="geometry"`` (default) the warp is carried by a chea
 reference by the one-to-one assignment on distance, refit, a few rounds (ICP-like). The chain
 does not depend on the model's answers, so the model then sees a whole chunk of ``chunk``
 volumes as one batch, and the result does not depend on the chunk size. A volume where fewer
-than ``lost_fraction`` of the neurons pair up (a jump) gets the full search again and the chain restarts from it. The model's log-probabilities (plus colour) are fused with a
+than ``lost_fraction`` of the neurons pair up (a jump) gets the full search again and the
+chain restarts from it. The model's log-probabilities (plus colour) are fused with a
 same-worm position likelihood (``position_sigma_um``: within one recording a neuron stays where
 the warp puts it, up to segmentation jitter; the model itself was trained across worms) and the
 one-to-one assignment gives the track IDs. ``refine_steps`` more model passes re-place each
@@ -251,9 +252,7 @@ def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: Tra
     and (``fit``) the warp that carries this volume onto the reference, fitted on the assignment."""
     lp, placed = out
     rate = _match_rate(lp)
-    calibrate = getattr(identifier, "_calibrate", None)
-    if calibrate is not None:
-        lp = calibrate(lp)
+    lp = identifier._calibrate(lp)
     if s.use_colour:
         saw = identifier._takes_colour([ref.table, volume], s.use_colour)
         lp = identifier._fuse_colour(lp, ref.table, volume, model_saw_colour=saw)
@@ -283,24 +282,15 @@ def _fuse_position(log_p: np.ndarray, placed: np.ndarray, ref_xyz: np.ndarray, s
     return fused - np.log(np.exp(fused).sum(axis=1, keepdims=True))
 
 
-def _model_colours(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings):
-    """Colour inputs for a model trained with colour (see Identifier._model_colours)."""
-    pick = getattr(identifier, "_model_colours", None)
-    return pick(ref.table, volumes, s.use_colour) if pick is not None else (None, None)
-
-
 def _full_search(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings) -> list[tuple]:
-    """(log p, placement) of each volume registered onto the reference, the chirality chosen as
-    ``fdlc label`` chooses it (no refinement)."""
-    a, starts, _, priors = identifier.place(ref.table, volumes, s.use_colour)
-    tc, sc = _model_colours(identifier, ref, volumes, s)
-    extra = {} if tc is None else {"template_colour": tc, "test_colours": sc}
-    return [(f["log_p"], f["moved"]) for f in identifier._align(a, starts, 0, prior=priors, **extra)]
+    """(log p, placement) of each volume found as ``fdlc label`` finds it (no refinement)."""
+    found, _ = identifier.search(ref.table, volumes, s.use_colour, refine_steps=0)
+    return [(f["log_p"], f["moved"]) for f in found]
 
 
 def _placed(identifier, ref: _Reference, volumes: list[NeuronTable], warps: list[Warp], s: TrackSettings) -> list[tuple]:
     """(log p, placement) of each volume placed in the reference frame by its warp, as one batch."""
-    tc, sc = _model_colours(identifier, ref, volumes, s)
+    tc, sc = identifier._model_colours(ref.table, volumes, s.use_colour)
     extra = () if tc is None else (tc, sc)
     placed = [w(v.xyz) for v, w in zip(volumes, warps)]
     return list(zip(identifier._forward_many(ref.xyz, placed, *extra), placed))

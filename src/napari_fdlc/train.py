@@ -32,6 +32,7 @@ import numpy as np
 from .colour import IDENTITY_CHANNELS, normal_scores
 from .corpus import LABS, Worm, load_corpus
 from .errors import atomic_write
+from .evaluate import Scores
 from .geometry import N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, fit_affine, true_orientation
 from .reference import atlas_worm, build_atlas
 from .register import register, template_mixture
@@ -268,23 +269,31 @@ def split_worms(worms: list[Worm], cfg: TrainConfig, rng) -> tuple[list[Worm], d
     return train, val
 
 
+def _pair_scores(identifier, pairs, use_colour: bool, scores: Scores | None = None) -> Scores:
+    """Each test named from its template, scored as ``fdlc evaluate`` scores pairs."""
+    scores = scores if scores is not None else Scores()
+    for template, test in pairs:
+        scores.add(identifier.label(test, [template], use_colour=use_colour), test, set(template.names))
+    return scores
+
+
+def _panel_scores(identifier, panel, tests, use_colour: bool, scores: Scores | None = None) -> Scores:
+    """Each test named by the panel, scored as ``fdlc evaluate`` scores the panel."""
+    scores = scores if scores is not None else Scores()
+    for test in tests:
+        scores.add(identifier.label_panel(test, panel, use_colour=use_colour), test, panel.names)
+    return scores
+
+
 def _validate(identifier, val_pairs: dict[str, list], panel_tests: dict) -> dict[str, dict[str, float]]:
     """Top-1 per lab: pairs position only, pairs with colour, and (labs in ``panel_tests``) the
-    panel with colour, scored as ``fdlc evaluate`` scores them."""
-    from .evaluate import Scores
-
+    panel with colour."""
     out = {"val_top1": {}, "val_top1_colour": {}, "val_panel_top1": {}}
     for lab, pairs in val_pairs.items():
         for key, use_colour in (("val_top1", False), ("val_top1_colour", True)):
-            scores = Scores()
-            for template, test in pairs:
-                scores.add(identifier.label(test, [template], use_colour=use_colour), test, set(template.names))
-            out[key][lab] = round(scores.summary()["top1"], 4)
+            out[key][lab] = round(_pair_scores(identifier, pairs, use_colour).summary()["top1"], 4)
     for lab, (panel, tests) in panel_tests.items():
-        scores = Scores()
-        for test in tests:
-            scores.add(identifier.label_panel(test, panel, use_colour=True), test, panel.names)
-        out["val_panel_top1"][lab] = round(scores.summary()["top1"], 4)
+        out["val_panel_top1"][lab] = round(_panel_scores(identifier, panel, tests, True).summary()["top1"], 4)
     return out
 
 
@@ -474,14 +483,12 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
 
 
 def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict | None) -> dict:
-    from .evaluate import Scores
     from .identify import MIRROR_PRIOR
 
-    def run(use_colour):
+    def run(use_colour):  # every training lab's validation pairs, pooled
         scores = Scores()
         for pairs in val_pairs.values():
-            for template, test in pairs:
-                scores.add(identifier.label(test, [template], use_colour=use_colour), test, set(template.names))
+            _pair_scores(identifier, pairs, use_colour, scores)
         return scores
 
     settings = identifier.settings
@@ -495,11 +502,7 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
             log(f"calibrate: {name} {value}: {results[-1]:.3f}")
         setattr(settings, name, values[int(np.argmax(results))])
 
-    # Not fitted: on worms it has not seen, the model's preference between the two placements
-    # is noise (model_card.md). Fitting it on these validation worms (some of them seen in
-    # training) gave 0.1 to 1.0 by fold, and where it trusted the model the held-out lab lost
-    # up to 23 points.
-    settings.mirror_penalty = MIRROR_PRIOR
+    settings.mirror_penalty = MIRROR_PRIOR  # not fitted: why at identify.MIRROR_PRIOR
     choose("no_match_weight", (0.05, 0.2, 0.5, 1.0), lambda: run(False).summary()["top1"])
     choose("colour_weight", (0.0, 0.25, 0.5, 1.0), lambda: run(True).summary()["top1"])
     # lowest expected calibration error, position only and with colour
@@ -509,8 +512,7 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
     def run_panel(use_colour):
         scores = Scores()
         for panel, tests in panel_tests.values():
-            for test in tests:
-                scores.add(identifier.label_panel(test, panel, use_colour=use_colour), test, panel.names)
+            _panel_scores(identifier, panel, tests, use_colour, scores)
         return scores
 
     if panel_tests:
