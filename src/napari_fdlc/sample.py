@@ -21,7 +21,7 @@ STACK_NAME = "sample_stack.ome.tif"
 TABLE_NAME = "sample_neurons.csv"
 SAMPLE_SEED = 7
 # Small enough to ship (a few MB with zlib), fine enough to look like a real NeuroPAL head.
-SAMPLE_VOXEL_ZYX = (1.2, 0.3, 0.3)
+SAMPLE_VOXEL_ZYX = (1.2, 0.36, 0.36)
 SAMPLE_MARGIN_UM = (3.0, 5.0, 5.0)
 # Generated worms sample each neuron independently, so some land on top of each other; spread
 # them to the spacing of real heads (10th percentile of nearest-neighbour distances ~2.4 µm).
