@@ -15,6 +15,8 @@ volumes per second when many volumes are given at once. Configurations:
   by the warp of the one before, one model pass, assignment); latency = one volume at a time
   (chunk 1, what a live recording needs), batched = chunk 16; the first volume's search is
   included in the average;
+* fast mode: ``fdlc track --method geometry``, the warp chain alone (no model; accuracy in
+  docs/tracking.md), one volume after the other, so latency and throughput are the same thing;
 * CPD: ``baselines.cpd_match`` (every orientation of ``geometry.ORIENTATIONS``) + the same
   assignment and candidates.
 
@@ -146,10 +148,15 @@ def main(argv=None) -> int:
                 lambda: track(sequence, identifier=ident, settings=TrackSettings(chunk=16)),
                 len(sequence),
             ),
+            "fast mode: track --method geometry (no model)": (
+                lambda: track(sequence, method="geometry"),
+                lambda: track(sequence, method="geometry"),
+                len(sequence),
+            ),
         }
         for name, (one, many, count) in configs.items():
             row = rows.setdefault(name, {})
-            if name.startswith("fdlc track"):
+            if "track" in name:
                 # latency per volume of a streamed sequence (one volume at a time)
                 wall, cpu = _median_ms(one, max(1, reps // 10))
                 wall, cpu = wall / len(sequence), cpu / len(sequence)

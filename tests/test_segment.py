@@ -91,6 +91,16 @@ def test_touching_nuclei_are_split(distance, ratio):
     assert score_detections(truth.xyz, found.xyz)["tp"] == 2
 
 
+def test_a_dim_nucleus_pressed_on_a_bright_one_needs_the_fine_scale():
+    # 2.4 µm nuclei 2.2 µm apart, the second 2.5x dimmer: one blob at the nominal 3 µm scale
+    stack, truth = _two_nuclei(2.2, 2.5, radius=1.2)
+    vol = stack.data[stack.role_index("W")]
+    one_scale = detect_nuclei(vol, stack.voxel_size_zyx, 3.0, fine_scale=None)[0]
+    both = detect_nuclei(vol, stack.voxel_size_zyx, 3.0)[0]
+    assert len(one_scale) == 1
+    assert len(both) == 2 and score_detections(truth.xyz, both[:, ::-1])["tp"] == 2
+
+
 @pytest.mark.parametrize("radius, diameter", [(1.8, 3.0), (2.2, 4.5)])
 def test_a_large_elongated_nucleus_is_one(radius, diameter):
     table = NeuronTable([[12.0, 10.0, 6.0]])

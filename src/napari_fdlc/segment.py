@@ -19,7 +19,9 @@ scaled to its own range) when no channel is marked W:
 5. maxima closer than 0.8 diameter are merged unless the response dips between them (the
    "valley" test, sampled along the segment joining them): a large or elongated nucleus has
    several maxima on one plateau, two touching nuclei have a valley. A fixed minimum distance
-   would have to choose between splitting big nuclei and merging small touching ones.
+   would have to choose between splitting big nuclei and merging small touching ones;
+6. steps 2-5 again at 0.8 of the diameter and twice the threshold; fine-scale nuclei more than
+   0.6 diameter from every detection are added (a small dim nucleus pressed against a bright one).
 
 Colours are read at each centre in a small ellipsoid (radius in µm): the 75th percentile of the
 voxels there (robust to a neighbour's edge and to the nucleus being smaller than the ellipsoid),
@@ -44,6 +46,8 @@ from .io.images import ImageError, Stack
 from .table import NeuronTable
 
 Progress = Callable[[float, str], None]
+FINE_SCALE = 0.8  # second detection scale, a fraction of the nucleus diameter (see detect_nuclei)
+FINE_SEPARATION = 0.6  # diameters: a fine-scale maximum nearer a nominal detection is that nucleus
 
 
 def _report(progress: Progress | None, fraction: float, message: str) -> None:
@@ -93,6 +97,7 @@ def detect_nuclei(
     saddle: float = 0.9,
     merge_distance_um: float | None = None,
     valley_sd: float = 0.0,
+    fine_scale: float | None = FINE_SCALE,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Nucleus centres in a Z, Y, X volume.
 
@@ -104,7 +109,9 @@ def detect_nuclei(
     of ``diameter_um``. ``saddle``: two maxima closer than ``merge_distance_um`` (default 0.8
     diameter) are kept apart only if the response between them falls below ``saddle`` times the
     weaker one, and by more than ``valley_sd`` noise SDs. ``min_distance_um`` (default 0.3
-    diameter): closer maxima are always merged.
+    diameter): closer maxima are always merged. ``fine_scale``: also detect at this fraction of
+    the diameter, at twice the threshold, and add what lies more than ``FINE_SEPARATION``
+    diameters from every detection (None: one scale only).
     """
     if diameter_um <= 0 or not np.isfinite(diameter_um):
         raise ImageError(f"nucleus diameter must be a positive number of µm (got {diameter_um})")
@@ -154,7 +161,23 @@ def detect_nuclei(
         response - med, sub_idx, zyx, values - med, min_distance_um, merge_distance_um or 0.8 * diameter_um,
         saddle, valley_sd * noise,
     )
-    return zyx[keep], (values[keep] - med) / noise
+    zyx, score = zyx[keep], (values[keep] - med) / noise
+    if fine_scale:
+        # A small, dim nucleus pressed against a brighter one (2.2 µm apart, 2.5x dimmer) is a
+        # shoulder at the nominal scale; a finer band-pass separates them. Only strong fine maxima away from
+        # every nominal detection are added, so noise and big nuclei gain nothing: on rendered
+        # corpus worms recall rose 0.96 -> 0.99 (0.91 -> 0.96 dense) at realistic noise with
+        # precision >= 0.99, and nothing changed at very high noise (docs/segmentation.md).
+        fine, fine_score = detect_nuclei(
+            volume, voxel_size_zyx, fine_scale * diameter_um, 2 * threshold, min_relative,
+            sigma_fraction=sigma_fraction, saddle=saddle, valley_sd=valley_sd, fine_scale=None)
+        if len(zyx) and len(fine):
+            away = cKDTree(zyx).query(fine)[0] > FINE_SEPARATION * diameter_um
+            fine, fine_score = fine[away], fine_score[away]
+        zyx, score = np.vstack([zyx, fine]), np.concatenate([score, fine_score])
+        order = np.argsort(-score, kind="stable")
+        zyx, score = zyx[order], score[order]
+    return zyx, score
 
 
 def _parabola_offsets(response: np.ndarray, idx: np.ndarray) -> np.ndarray:
