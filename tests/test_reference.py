@@ -17,7 +17,7 @@ def test_atlas_round_trip(tmp_path):
     back = Atlas.load(tmp_path / "a.csv")
     assert list(back.names) == list(atlas.names)
     assert np.allclose(back.mean, atlas.mean, atol=1e-3)
-    assert back.labs == atlas.labs
+    assert back.labs == atlas.labs and back.worm_scale == atlas.worm_scale > 1.0
 
 
 def test_generated_worm_is_plausible_and_deterministic():
@@ -26,6 +26,12 @@ def test_generated_worm_is_plausible_and_deterministic():
     assert 60 <= len(a) <= 250 and a.named.all()
     assert np.all(a.xyz > 0)
     assert all(np.all(v > 0) for v in a.colours.values())  # raw-looking intensities
+    # at a real worm's size, not the (Procrustes-shrunk) atlas's
+    from napari_fdlc.geometry import canonical_frame
+
+    atlas = load_atlas()
+    length = np.ptp(np.percentile(canonical_frame(a.xyz)[0][:, 0], [5, 95]))
+    assert length / np.ptp(np.percentile(atlas.mean[:, 0], [5, 95])) > 1.1
 
 
 def test_build_atlas_recovers_a_known_layout():
@@ -54,3 +60,5 @@ def test_build_atlas_recovers_a_known_layout():
 
     assert np.corrcoef(pdist(ref), pdist(got))[0, 1] > 0.99
     assert np.median(atlas.sd) < 1.0
+    # worms of the same size: the atlas keeps their size (Procrustes shrinks it only with noise)
+    assert 1.0 <= atlas.worm_scale < 1.05

@@ -92,3 +92,31 @@ def test_a_partial_field_of_view_is_searched_along_the_body():
         return np.median(np.linalg.norm(register(posed, mixture)[0].xyz - atlas.mean[rows], axis=1))
 
     assert error(atlas.mixture()) < 4.0 < 10.0 < error(replace(atlas.mixture(), partial_views=False))
+
+
+def test_a_short_partial_view_at_real_size_starts_at_the_atlas_scale():
+    """The last quarter of a head at a real worm's size (the atlas is smaller): started at
+    scale 1, EM lands tens of µm off; at 1 / worm_scale it lands on the names' means."""
+    from dataclasses import replace
+
+    from napari_fdlc.geometry import canonical_frame
+    from napari_fdlc.table import NeuronTable
+
+    atlas = load_atlas()
+    assert 1.1 < atlas.worm_scale < 1.5
+    index = {n: i for i, n in enumerate(atlas.names)}
+    missed = 0
+    for seed in (0, 1, 3):
+        rng = np.random.default_rng(seed)
+        worm = atlas_worm(atlas, rng)
+        x = canonical_frame(worm.xyz)[0][:, 0]
+        part = worm.subset(np.flatnonzero(np.median(x) - x > np.quantile(np.median(x) - x, 0.75)))
+        posed = _posed(NeuronTable(part.xyz * atlas.worm_scale, part.colours, part.labels), 50, False, rng)
+        rows = [index[n] for n in part.labels]
+
+        def error(mixture):
+            return np.median(np.linalg.norm(register(posed, mixture)[0].xyz - atlas.mean[rows], axis=1))
+
+        assert error(atlas.mixture()) < 4.0
+        missed += error(replace(atlas.mixture(), partial_view_scale=1.0)) > 10.0
+    assert missed >= 2

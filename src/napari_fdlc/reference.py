@@ -68,7 +68,8 @@ class Atlas:
         is named; the scale is free within bounds (the atlas is smaller than real worms); a
         test showing part of the head is also tried at offsets along the body axis."""
         return Mixture(self.mean, self.sd**2 + _REGISTRATION_SD**2, np.log(np.maximum(self.frequency, 1e-6)),
-                       self.colour, self.colour_sd**2, scale_range=(0.8, 1.25), partial_views=True)
+                       self.colour, self.colour_sd**2, scale_range=(0.8, 1.25), partial_views=True,
+                       partial_view_scale=1 / self.worm_scale)
 
     def register(self, test: NeuronTable, use_colour: bool = True, chiralities=(False, True)) -> list[Placement]:
         """``test`` placed in the atlas frame, once per chirality (see napari_fdlc.register.register)."""

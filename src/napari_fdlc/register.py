@@ -55,6 +55,11 @@ class Mixture:
     # also at offsets along the body axis (partial_view_shifts). Between two worms of a lab it
     # cost SK1's pairs 4.6 points (their fields of view vary), so templates do not.
     partial_views: bool = False
+    # The test's size relative to the reference that the starts of a partial view assume. The
+    # atlas is smaller than real worms (Procrustes): 1 / Atlas.worm_scale. A whole head starts
+    # at scale 1 and EM shrinks it; from a partial view EM did not find the pose its names give
+    # (the likelihood there is higher than at every pose found: a search failure).
+    partial_view_scale: float = 1.0
 
 
 @dataclass
@@ -83,10 +88,15 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     likelihood, ``iterations`` EM steps each, the most likely result per chirality — or, with
     ``every_start``, every start's result (``keep`` per chirality) for the caller to choose.
     With ``mixture.partial_views``, a test that covers less of the body than the reference
-    also starts at several offsets along the body axis (:func:`partial_view_shifts`), and twice
-    as many starts are kept."""
+    starts at ``mixture.partial_view_scale`` and at several offsets along the body axis
+    (:func:`partial_view_shifts`), and twice as many starts are kept."""
     canon = canonical_frame(test.xyz)[0]
-    shifts = partial_view_shifts(canon[:, 0], mixture.mean[:, 0], mixture.scale_range[0]) if mixture.partial_views else (0.0,)
+    shifts = (0.0,)
+    if mixture.partial_views:
+        shifts = partial_view_shifts(canon[:, 0], mixture.mean[:, 0], mixture.scale_range[0])
+        if len(shifts) > 1:
+            canon = canon * mixture.partial_view_scale
+            shifts = partial_view_shifts(canon[:, 0], mixture.mean[:, 0], mixture.scale_range[0])
     keep = keep if len(shifts) == 1 else 2 * keep
     var = mixture.var
     log_weight = mixture.log_weight - 0.5 * np.log(var).sum(axis=1)
