@@ -99,3 +99,22 @@ def test_training_on_the_corpus_runs(corpus_path, tmp_path):
     result = train(cfg, log=lambda *_: None)
     assert result["history"][-1]["step"] == 3
     load_model(tmp_path / "m")
+
+
+def test_calibration_does_not_depend_on_the_settings_it_starts_from():
+    from dataclasses import replace
+
+    from napari_fdlc.identify import Identifier, InferenceSettings
+    from napari_fdlc.model import CorrespondenceModel
+    from napari_fdlc.train import calibrate
+
+    torch.manual_seed(0)
+    model = CorrespondenceModel({"dim": 16, "layers": 1, "colour_channels": 3})
+    rng = np.random.default_rng(0)
+    worms = [generate_worm(seed=s) for s in (1, 2)]
+    pairs = {"A": [(worms[0], simulate_worm(worms[1], rng).table), (worms[1], simulate_worm(worms[0], rng).table)]}
+    first = calibrate(Identifier(model, InferenceSettings(), "cpu"), pairs, log=lambda *_: None)
+    odd = InferenceSettings(temperature=0.3, colour_weight=0.5, no_match_weight=1.0, panel_temperature=2.0)
+    assert calibrate(Identifier(model, odd, "cpu"), pairs, log=lambda *_: None) == first
+    assert calibrate(Identifier(model, replace(odd, **{k: v for k, v in first.items() if k != "chirality"}), "cpu"),
+                     pairs, log=lambda *_: None) == first

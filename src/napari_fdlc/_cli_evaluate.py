@@ -102,6 +102,15 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
             scores.add(told.label_panel(test, panel, use_colour=True), test, vocabulary)
         rows.append((lab, "panel", "fdlc", "colour, chirality given", scores.summary()))
         _log(f"{lab} panel colour, chirality given: {rows[-1][-1]}")
+        # What a user who sets --chirality once for the microscope gets: the handedness of most
+        # of the lab's worms, for all of them.
+        mirrored = np.mean([mirrored_relative_to(panel.atlas, t) for t in tables]) > 0.5
+        told = identifier.with_chirality("mirrored" if mirrored else "same")
+        scores = Scores()
+        for test in tables[:panel_worms_per_lab]:
+            scores.add(told.label_panel(test, panel, use_colour=True), test, vocabulary)
+        rows.append((lab, "panel", "fdlc", "colour, lab handedness", scores.summary()))
+        _log(f"{lab} panel colour, lab handedness: {rows[-1][-1]}")
     # Held-out synthetic pairs: a worm and its simulated copy (published simulator magnitudes).
     rng = np.random.default_rng(0)
     synth = Scores()

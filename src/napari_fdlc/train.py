@@ -492,6 +492,11 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
         return scores
 
     settings = identifier.settings
+    # Every fitted setting starts from its default, not from what the model's JSON holds, so
+    # that calibrating twice gives the same settings (each choice below depends on the others).
+    defaults = type(settings)()
+    for name in ("no_match_weight", "colour_weight", "temperature", "chirality_doubt", "panel_temperature"):
+        setattr(settings, name, getattr(defaults, name))
 
     def choose(name, values, score):
         """Set ``settings.name`` to the value with the highest score (first one on ties)."""
