@@ -5,7 +5,7 @@ and with colour, the non-learned floor, CPD) and "panel" (the built-in reference
 from an atlas WITHOUT the lab being scored); held-out synthetic pairs; reliability plot and the
 threshold's accuracy/coverage table.
 
-    python benchmarks/accuracy.py [--pairs-per-lab 20] [--panel-worms-per-lab 8] [--no-cpd]
+    python benchmarks/accuracy.py [--pairs-per-lab 20] [--panel-worms-per-lab 40] [--no-cpd]
 
 Same as `fdlc evaluate`. The corpus is read in place (default ../shared/data/neuropal_corpus).
 """

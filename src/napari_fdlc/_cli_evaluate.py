@@ -22,7 +22,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--labs", nargs="+", default=None)
     p.add_argument("--weights", help="model path without suffix (default: shipped)")
     p.add_argument("--pairs-per-lab", type=int, default=20)
-    p.add_argument("--panel-worms-per-lab", type=int, default=8)
+    p.add_argument("--panel-worms-per-lab", type=int, default=40,
+                   help="worms of each lab named by the panel (default 40: every worm of the corpus's labs)")
     p.add_argument("--synthetic-pairs", type=int, default=40)
     p.add_argument("--no-cpd", action="store_true")
     p.add_argument("--out", default="docs/accuracy.md", help="markdown report (the plot goes beside it in images/)")
@@ -42,7 +43,7 @@ def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, panel_worms_per_lab=8,
+def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, panel_worms_per_lab=40,
                     synthetic_pairs=40, with_cpd=True, out: Path | None = None) -> str:
     from .baselines import cpd_match, floor_match
     from .corpus import LABS, load_corpus
