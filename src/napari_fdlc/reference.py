@@ -13,9 +13,10 @@ scores, see :mod:`napari_fdlc.colour`). Built by :func:`build_atlas`:
 
 The least-squares scales of step 2 are biased low, so the atlas comes out 0.6–0.9× the size of
 the worms in µm; the median ratio is kept (``Atlas.worm_scale``) so that generated worms have a
-real worm's size. Rescaling the atlas itself to the median worm was tried and scored worse on the panel
-(top-1 with colour NP 60 → 38 %, SF 34 → 20 %, 8 worms per lab): the test is registered to the
-atlas's scale anyway, and the model's distance prior is gentler in the smaller frame.
+real worm's size and a partial view starts at the atlas's. Rescaling the atlas itself to the
+median worm was tried and scored worse on the panel (top-1 with colour NP 60 → 38 %, SF 34 →
+20 %, 8 worms per lab): the test is registered to the atlas's scale anyway, and the model's
+distance prior is gentler in the smaller frame.
 
 The panel (what ``fdlc label`` and Auto-label use without ``--template``) is the atlas's mean
 worm plus a few worms sampled from its per-name spreads, all in the atlas's frame;
@@ -88,7 +89,8 @@ class Atlas:
 
     def save(self, path: str | Path) -> None:
         with atomic_write(path, "w", encoding="utf-8", newline="") as handle:
-            handle.write(f"# napari-fdlc atlas: {self.worms} worms of {' '.join(self.labs)}; worm scale {self.worm_scale:.4f}\n")
+            labs = " ".join(self.labs)
+            handle.write(f"# napari-fdlc atlas: {self.worms} worms of {labs}; worm scale {self.worm_scale:.4f}\n")
             self.to_frame().to_csv(handle, index=False, float_format="%.4f")
 
     @classmethod

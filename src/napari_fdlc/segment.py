@@ -164,10 +164,11 @@ def detect_nuclei(
     zyx, score = zyx[keep], (values[keep] - med) / noise
     if fine_scale:
         # A small, dim nucleus pressed against a brighter one (2.2 µm apart, 2.5x dimmer) is a
-        # shoulder at the nominal scale; a finer band-pass separates them. Only strong fine maxima away from
-        # every nominal detection are added, so noise and big nuclei gain nothing: on rendered
-        # corpus worms recall rose 0.96 -> 0.99 (0.91 -> 0.96 dense) at realistic noise with
-        # precision >= 0.99, and nothing changed at very high noise (docs/segmentation.md).
+        # shoulder at the nominal scale; a finer band-pass separates them. Only strong fine
+        # maxima away from every nominal detection are added, so noise and big nuclei gain
+        # nothing: on rendered corpus worms recall rose 0.96 -> 0.98 (0.92 -> 0.95 dense) at
+        # realistic noise with precision >= 0.99, and nothing changed at very high noise
+        # (docs/segmentation.md).
         fine, fine_score = detect_nuclei(
             volume, voxel_size_zyx, fine_scale * diameter_um, 2 * threshold, min_relative,
             sigma_fraction=sigma_fraction, saddle=saddle, valley_sd=valley_sd, fine_scale=None)
