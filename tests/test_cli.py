@@ -143,6 +143,23 @@ def test_chirality_option_decides_left_and_right(tmp_path, worm, other_worm):
     assert right["mirrored"] > right["same"] + 0.2, right
 
 
+def test_handedness_tells_which_chirality_to_use(tmp_path, worm, other_worm, capsys):
+    mirrored = NeuronTable(worm.xyz * [1, 1, -1], worm.colours, worm.labels, source="mirrored")
+    paths = [tmp_path / f"{k}.csv" for k in ("a", "b", "c")]
+    for path, table in zip(paths, (mirrored, NeuronTable(other_worm.xyz * [1, 1, -1], labels=other_worm.labels), worm)):
+        write_table(table, path)
+    assert run("handedness", *paths) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert [line.rsplit(" ", 1)[1] for line in out[:3]] == ["mirrored", "mirrored", "same"]
+    assert out[3] == "2 of 3 mirrored: use --chirality mirrored"
+    assert run("handedness", paths[0], "--template", paths[2]) == 0
+    assert capsys.readouterr().out.strip().endswith("mirrored")
+    write_table(NeuronTable(worm.xyz), tmp_path / "unlabelled.csv")
+    assert run("handedness", paths[2], tmp_path / "unlabelled.csv") == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and len(captured.err.strip().splitlines()) == 1 and "at least 6" in captured.err
+
+
 @pytest.mark.parametrize("args", [["label", "t.csv"], ["label", "t.csv", "--chirality", "left", "--out", "o.csv"], ["nonsense"]])
 def test_usage_mistakes_are_one_line(args, capsys):
     with pytest.raises(SystemExit) as exc:

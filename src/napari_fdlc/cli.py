@@ -139,6 +139,33 @@ def _run_train(args) -> int:
     return 0
 
 
+def _handedness_parser(sub) -> None:
+    p = sub.add_parser("handedness", help="which --chirality fits recordings like these labelled worms",
+                       description="Print the handedness of labelled neuron tables relative to the built-in atlas "
+                                   "(or a template): the --chirality to use for recordings made the same way.")
+    p.add_argument("tables", nargs="+", metavar="LABELLED.csv", help="neuron tables with a label column")
+    p.add_argument("--template", metavar="T.csv", help="relative to this labelled table instead of the built-in atlas")
+    p.set_defaults(run=_run_handedness)
+
+
+def _run_handedness(args) -> int:
+    from .evaluate import handedness
+    from .table import read_table
+
+    tables = [read_table(t) for t in args.tables]  # all read (and refused) before any answer
+    reference = read_table(args.template) if args.template else None
+    answers = [handedness(t, reference) for t in tables]
+    for path, answer in zip(args.tables, answers):
+        print(f"{path}: {answer}")
+    same, mirrored = answers.count("same"), answers.count("mirrored")
+    if len(answers) > 1 and same != mirrored:
+        majority = "same" if same > mirrored else "mirrored"
+        print(f"{max(same, mirrored)} of {len(answers)} {majority}: use --chirality {majority}")
+    elif len(answers) > 1:
+        print(f"{same} same, {mirrored} mirrored: no majority; check how these recordings were made")
+    return 0
+
+
 def _atlas_parser(sub) -> None:
     p = sub.add_parser("atlas", help="build the reference atlas (the built-in panel) from an annotated corpus")
     p.add_argument("--corpus", help="folder with worms.csv (default: ../shared/data/neuropal_corpus or $FDLC_CORPUS)")
@@ -180,6 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
     _simulate_parser(sub)
     _train_parser(sub)
     _atlas_parser(sub)
+    _handedness_parser(sub)
     for name, module in (("evaluate", "_cli_evaluate"), ("track", "_cli_track")):
         try:
             mod = __import__(f"napari_fdlc.{module}", fromlist=["add_arguments", "run"])

@@ -95,10 +95,33 @@ def pair_list(tables: list[NeuronTable], max_pairs: int | None, seed: int = 0) -
 def mirrored_relative_to(atlas, worm: NeuronTable) -> bool:
     """Whether a labelled worm has the other handedness than the atlas (names give it: the best
     mirrored fit of its named neurons onto the atlas means is better than the best proper one)."""
+    return _mirrored(atlas.names, atlas.mean, worm, strict=False)
+
+
+def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
+    """"same" or "mirrored": a labelled worm's handedness relative to a labelled ``reference``
+    or, without one, to the built-in atlas — the value of ``--chirality`` for recordings made
+    like it. Refuses a worm with fewer than 6 names in common (one line that says so)."""
+    from .geometry import canonical_frame
+    from .reference import load_atlas
+
+    if reference is None:
+        atlas = load_atlas()
+        names, xyz = atlas.names, atlas.mean
+    else:
+        names, xyz = reference.labels, canonical_frame(reference.xyz)[0]
+    return "mirrored" if _mirrored(names, xyz, worm, strict=True) else "same"
+
+
+def _mirrored(names, xyz: np.ndarray, worm: NeuronTable, strict: bool) -> bool:
+    from .errors import FdlcError
     from .geometry import N_PROPER, canonical_frame, true_orientation
 
-    index = {n: i for i, n in enumerate(atlas.names)}
+    index = {n: i for i, n in enumerate(names) if n}
     pairs = np.array([(index[n], j) for j, n in enumerate(worm.labels) if n in index])
-    if len(pairs) < 4:
+    if len(pairs) < (6 if strict else 4):
+        if strict:
+            raise FdlcError(f"{worm.source}: {len(pairs)} named neuron(s) in common with the reference; "
+                            "the handedness needs at least 6 (label a few left/right pairs)")
         return False
-    return true_orientation(atlas.mean, canonical_frame(worm.xyz)[0], pairs) >= N_PROPER
+    return true_orientation(xyz, canonical_frame(worm.xyz)[0], pairs) >= N_PROPER
