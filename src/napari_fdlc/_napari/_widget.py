@@ -190,7 +190,8 @@ class AutoLabelWidget(QWidget):
             self.chirality_combo.addItem(text, value)
         self.chirality_combo.setToolTip(
             "a recording mirrored by its acquisition (flipped z) swaps every left/right pair, and the\n"
-            "image cannot tell: set it if you know your microscope, or fix one left/right neuron and Re-label")
+            "image cannot tell: set it if you know your microscope ('fdlc handedness' reads it from worms\n"
+            "you have labelled), or fix one left/right neuron and Re-label")
         form.addRow("Handedness", self.chirality_combo)
         layout.addWidget(box)
 
