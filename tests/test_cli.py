@@ -167,3 +167,14 @@ def test_usage_mistakes_are_one_line(args, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "--help" in err
+
+
+def test_evaluate_writes_every_protocol(tmp_path, corpus_path):
+    out = tmp_path / "docs" / "accuracy.md"
+    assert run("evaluate", "--corpus", corpus_path, "--labs", "SK1", "--pairs-per-lab", "2", "--panel-worms-per-lab", "2",
+               "--synthetic-pairs", "2", "--no-cpd", "--out", out) == 0
+    rows = {tuple(c.strip() for c in line.strip("|").split("|")[1:4]) for line in out.read_text().splitlines()
+            if line.startswith("| SK1 |")}
+    assert rows == {("pairs", m, i) for m in ("fdlc", "floor") for i in ("position", "colour")} | {
+        ("panel", "fdlc", i) for i in ("position", "colour", "colour, chirality given", "colour, lab handedness")}
+    assert (tmp_path / "docs" / "images" / "calibration.png").exists()
