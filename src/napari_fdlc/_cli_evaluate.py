@@ -95,23 +95,18 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
                 scores.add(identifier.label_panel(test, panel, use_colour=use_colour), test, vocabulary, time.perf_counter() - t0)
             rows.append((lab, "panel", "fdlc", "colour" if use_colour else "position", scores.summary()))
             _log(f"{lab} panel colour={use_colour}: {rows[-1][-1]}")
-        # What a user who knows the microscope's handedness gets (--chirality same|mirrored):
-        # each worm's chirality relative to the atlas, read from its names.
-        scores = Scores()
-        for test in tables[:panel_worms_per_lab]:
-            told = identifier.with_chirality("mirrored" if mirrored_relative_to(panel.atlas, test) else "same")
-            scores.add(told.label_panel(test, panel, use_colour=True), test, vocabulary)
-        rows.append((lab, "panel", "fdlc", "colour, chirality given", scores.summary()))
-        _log(f"{lab} panel colour, chirality given: {rows[-1][-1]}")
-        # What a user who sets --chirality once for the microscope gets: the handedness of most
-        # of the lab's worms, for all of them.
-        mirrored = np.mean([mirrored_relative_to(panel.atlas, t) for t in tables]) > 0.5
-        told = identifier.with_chirality("mirrored" if mirrored else "same")
-        scores = Scores()
-        for test in tables[:panel_worms_per_lab]:
-            scores.add(told.label_panel(test, panel, use_colour=True), test, vocabulary)
-        rows.append((lab, "panel", "fdlc", "colour, lab handedness", scores.summary()))
-        _log(f"{lab} panel colour, lab handedness: {rows[-1][-1]}")
+        # Told the handedness (--chirality same|mirrored), read from the names: each worm's own,
+        # and the lab's majority set once for all of them (what a user who sets it for the
+        # microscope gets).
+        mirrored = [mirrored_relative_to(panel.atlas, t) for t in tables]
+        lab_mirrored = np.mean(mirrored) > 0.5
+        for inp, told in (("colour, chirality given", lambda k: mirrored[k]), ("colour, lab handedness", lambda k: lab_mirrored)):
+            scores = Scores()
+            for k, test in enumerate(tables[:panel_worms_per_lab]):
+                chirality = "mirrored" if told(k) else "same"
+                scores.add(identifier.with_chirality(chirality).label_panel(test, panel, use_colour=True), test, vocabulary)
+            rows.append((lab, "panel", "fdlc", inp, scores.summary()))
+            _log(f"{lab} panel {inp}: {rows[-1][-1]}")
     # Held-out synthetic pairs: a worm and its simulated copy (published simulator magnitudes).
     rng = np.random.default_rng(0)
     synth = Scores()

@@ -91,12 +91,16 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     starts at ``mixture.partial_view_scale`` and at several offsets along the body axis
     (:func:`partial_view_shifts`), and twice as many starts are kept."""
     canon = canonical_frame(test.xyz)[0]
-    shifts = (0.0,)
-    if mixture.partial_views:
-        shifts = partial_view_shifts(canon[:, 0], mixture.mean[:, 0], mixture.scale_range[0])
-        if len(shifts) > 1:
-            canon = canon * mixture.partial_view_scale
-            shifts = partial_view_shifts(canon[:, 0], mixture.mean[:, 0], mixture.scale_range[0])
+
+    def shifts_of(points):
+        if not mixture.partial_views:
+            return (0.0,)
+        return partial_view_shifts(points[:, 0], mixture.mean[:, 0], mixture.scale_range[0])
+
+    shifts = shifts_of(canon)
+    if len(shifts) > 1:  # a partial view: start at the scale it has against the reference
+        canon = canon * mixture.partial_view_scale
+        shifts = shifts_of(canon)
     keep = keep if len(shifts) == 1 else 2 * keep
     var = mixture.var
     log_weight = mixture.log_weight - 0.5 * np.log(var).sum(axis=1)
@@ -125,9 +129,10 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     tried = np.isin(_START_MIRRORED, chiralities)
     mirrored = np.tile(_START_MIRRORED[tried], len(shifts))
     turned = np.einsum("kij,nj->kni", _START_ROTATIONS[tried], canon)
-    starts = np.concatenate([turned + np.array([dx, 0.0, 0.0]) for dx in shifts])
+    offsets = [turned + np.array([dx, 0.0, 0.0]) for dx in shifts]
+    starts = np.concatenate(offsets)
     # one offset at a time: the (starts, N, K) scores of every offset at once would take 100+ MB
-    coarse = np.concatenate([log_likelihood(log_components(turned + np.array([dx, 0.0, 0.0]))).sum(axis=-1) for dx in shifts])
+    coarse = np.concatenate([log_likelihood(log_components(o)).sum(axis=-1) for o in offsets])
     chosen = np.concatenate([np.flatnonzero(mirrored == m)[np.argsort(-coarse[mirrored == m])[:keep]] for m in chiralities])
     points = starts[chosen]  # EM from every kept start at once: (S, N, 3)
     for _ in range(iterations):
