@@ -11,6 +11,19 @@ def test_shipped_atlas_and_panel():
     assert len(panel.templates) >= 2 and all(t.named.all() for t in panel.templates)
 
 
+def test_panel_is_the_mean_worm_and_samples_at_the_chosen_spread():
+    from napari_fdlc.reference import PANEL_SAMPLES, PANEL_SPREAD, make_panel
+
+    atlas = load_atlas()
+    panel = make_panel(atlas)
+    assert len(panel.templates) == 1 + PANEL_SAMPLES
+    assert np.allclose(panel.templates[0].xyz, atlas.mean)
+    # each sample's offsets from the mean, in units of the atlas's spread, have SD ≈ the spread factor
+    for spread in (PANEL_SPREAD, 1.0):
+        offsets = np.concatenate([(t.xyz - atlas.mean) / atlas.sd for t in make_panel(atlas, spread=spread).templates[1:]])
+        assert abs(offsets.std() - spread) < 0.05 * spread
+
+
 def test_atlas_round_trip(tmp_path):
     atlas = load_atlas()
     atlas.save(tmp_path / "a.csv")

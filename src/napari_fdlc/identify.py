@@ -297,7 +297,8 @@ class Identifier:
         if self.settings.temperature == 1.0:
             return log_p
         lp = log_p / self.settings.temperature
-        return lp - np.logaddexp.reduce(lp, axis=1, keepdims=True)
+        top = lp.max(axis=1, keepdims=True)  # (np.logaddexp.reduce takes 5× longer)
+        return lp - top - np.log(np.exp(lp - top).sum(axis=1, keepdims=True))
 
     def _fuse_colour(self, log_p: np.ndarray, template: NeuronTable, test: NeuronTable, model_saw_colour: bool) -> np.ndarray:
         """Colour likelihood fused with the positional probabilities. When the model itself
@@ -390,7 +391,7 @@ class Identifier:
 
 def _sharpen(probs: np.ndarray, temperature: float) -> np.ndarray:
     """``probs`` (N, names; the rest of each row is "no match") raised to 1/temperature and
-    renormalised with the no-match share. Averaging five templates' answers leaves the panel
+    renormalised with the no-match share. Averaging the templates' answers leaves the panel
     under-confident; a temperature fitted on the training labs undoes it."""
     if temperature == 1.0:
         return probs
