@@ -3,7 +3,7 @@ import itertools
 import numpy as np
 import pytest
 
-from napari_fdlc.match import assign, make_labelling, name_probabilities, top_k
+from napari_fdlc.match import assign, make_labelling, name_probabilities, one_to_one, top_k
 
 
 def brute_force(probs, weight=1.0):
@@ -86,3 +86,24 @@ def test_assignment_on_one_answer_confidence_from_another():
     assert lab.auto_id == ["AVAL", "AVAR"] and np.allclose(lab.auto_conf, [0.6, 0.6])
     swapped = make_labelling(["AVAL", "AVAR"], hedged, assign_probs=sharp[::-1].copy())
     assert swapped.auto_id == ["AVAR", "AVAL"] and np.allclose(swapped.auto_conf, [0.35, 0.35])
+
+
+def test_one_to_one_shares_a_name_claimed_twice_and_keeps_consistent_answers():
+    # two neurons both give 0.8 to A: neither can have it with more than about even odds
+    shared = one_to_one(np.array([[0.8, 0.1], [0.8, 0.05]]))
+    assert np.all(shared.sum(axis=0) <= 1 + 1e-6) and np.all(shared.sum(axis=1) <= 1 + 1e-9)
+    assert 0.4 < shared[0, 0] < 0.6 and 0.4 < shared[1, 0] < 0.6
+    assert shared[0, 1] > 0.1  # the mass A cannot take moves to the neuron's other names...
+    assert 1 - shared[1].sum() > 0.15  # ...and to "no named match"
+    # answers that already name each neuron differently are left as they are
+    consistent = np.array([[0.7, 0.1, 0.0], [0.1, 0.6, 0.2]])
+    assert np.allclose(one_to_one(consistent), consistent)
+
+
+def test_one_to_one_fixed_row_takes_its_name_from_the_others():
+    probs = np.array([[0.6, 0.3], [0.7, 0.2]])
+    out = one_to_one(probs, {0: 0})
+    assert np.allclose(out[0], [1.0, 0.0]) and out[1, 0] < 0.01
+    lab = make_labelling(["A", "B"], probs, fixed={0: "A"})
+    assert lab.auto_id == ["A", "B"] and lab.auto_conf[0] == pytest.approx(0.6)  # the model's own belief
+    assert lab.candidates(1)[0][1] == ["B"]

@@ -158,3 +158,19 @@ def test_a_fixed_name_settles_the_chirality():
     ident.settings.chirality = "same"  # the atlas's handedness forced: left and right swapped
     swapped = right(ident.label_panel(mirrored, panel, use_colour=False, fixed=fixed))
     assert settled > swapped + 0.15, (settled, swapped)
+
+
+def test_temperatures_change_the_confidence_not_the_names(worm, other_worm):
+    """Calibration (fitted after the settings chosen for top-1) must not change the answers."""
+    from napari_fdlc.reference import load_panel
+    from napari_fdlc.simulate import simulate_worm
+
+    test = simulate_worm(worm, 3).table
+    plain = Identifier.load()
+    plain = plain.with_settings(temperature=1.0, panel_temperature=1.0, chirality_doubt=0.0)
+    sharp = plain.with_settings(temperature=0.4, panel_temperature=0.4)
+    for run in (lambda i: i.label(test, [other_worm]), lambda i: i.label_panel(test, load_panel())):
+        a, b = run(plain), run(sharp)
+        assert a.auto_id == b.auto_id
+        named = np.array([bool(n) for n in a.auto_id])
+        assert b.auto_conf[named].mean() > a.auto_conf[named].mean() + 0.02

@@ -245,7 +245,8 @@ class Identifier:
         self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True, fixed: dict[int, str] | None = None,
     ) -> list[tuple[np.ndarray, dict]]:
         """:meth:`match_pair` for many tests against one template, batched through the model
-        (many volumes per second instead of one forward pass per volume)."""
+        (many volumes per second instead of one forward pass per volume). ``info["assign_probs"]``
+        is the same answer without the temperature: what the names are assigned on."""
         found, model_saw_colour = self.search(template, tests, use_colour)
         out = []
         for test, f in zip(tests, found):
@@ -253,7 +254,8 @@ class Identifier:
             if agreement is not None and not self.settings.refine_steps:
                 f["best"] = int(np.argmax(agreement))
                 f["log_p"] = f["all_log_p"][f["best"]]
-            info = {"mirrored": bool(f["mirrored"][f["best"]]), "willingness": f["willingness"].tolist()}
+            info = {"mirrored": bool(f["mirrored"][f["best"]]), "willingness": f["willingness"].tolist(),
+                    "assign_probs": self._answer(f["log_p"], template, test, use_colour, model_saw_colour, calibrated=False)}
             out.append((self._answer(f["log_p"], template, test, use_colour, model_saw_colour), info))
         return out
 
@@ -270,9 +272,13 @@ class Identifier:
             f["mirrored"] = flags
         return found, tc is not None
 
-    def _answer(self, log_p: np.ndarray, template, test, use_colour: bool, model_saw_colour: bool) -> np.ndarray:
-        """The model's log p for one placement -> calibrated probabilities (N, M + 1), colour fused."""
-        lp = self._calibrate(log_p)
+    def _answer(self, log_p: np.ndarray, template, test, use_colour: bool, model_saw_colour: bool,
+                calibrated: bool = True) -> np.ndarray:
+        """The model's log p for one placement -> probabilities (N, M + 1), colour fused;
+        ``calibrated``: with the temperature. The names are assigned on the answer without it
+        (the weights of colour and of "no match" were chosen for top-1 at temperature 1), so that
+        calibration changes the confidences reported, not the names."""
+        lp = self._calibrate(log_p) if calibrated else log_p
         if use_colour:
             lp = self._fuse_colour(lp, template, test, model_saw_colour)
         return np.exp(lp)
@@ -330,14 +336,16 @@ class Identifier:
         """Names for every test neuron from one or several labelled templates, each matched in
         its own registration. ``fixed`` maps rows to names the user decided."""
         use_colour = self._check(test, templates, use_colour)
-        per_template, infos = [], []
+        per_template, to_assign, infos = [], [], []
         for template in templates:
             probs, info = self.match_pair(template, test, use_colour, fixed=fixed)
             per_template.append((probs[:, :-1], template.labels))
+            to_assign.append((info.pop("assign_probs")[:, :-1], template.labels))
             infos.append(info)
         names, probs = name_probabilities(per_template)
         info = {"templates": infos, "colour": use_colour}
-        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight)
+        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight,
+                              assign_probs=name_probabilities(to_assign)[1])
 
     def label_panel(self, test: NeuronTable, panel: Panel, use_colour: bool = True, fixed: dict[int, str] | None = None) -> Labelling:
         """Names from the built-in panel. The test is placed in the atlas frame once per
@@ -357,16 +365,16 @@ class Identifier:
         agreement = _agreement_with_fixed(per_candidate, panel.templates, fixed)
         best = int(np.argmax(willingness if agreement is None else agreement))
 
-        def names_and_probs(k):  # the panel's answer for placement k: (names, (N, names))
+        def names_and_probs(k, calibrated=True):  # the panel's answer for placement k: (names, (N, names))
             return name_probabilities([
-                (self._answer(lps[k], t, test, use_colour, tc is not None)[:, :-1], t.labels)
+                (self._answer(lps[k], t, test, use_colour, tc is not None, calibrated)[:, :-1], t.labels)
                 for lps, t, (tc, _) in zip(per_candidate, panel.templates, tc_sc)
             ])
 
-        # The names are assigned on the chosen placement's answer. The probabilities reported
-        # keep some weight on the other chirality (none once a fixed name decided: its answer
-        # is mostly the same names with left and right swapped, so the doubt lands on the
-        # partner) and get the panel's temperature; both fitted for calibration.
+        # The names are assigned on the chosen placement's answer without the temperatures.
+        # The probabilities reported keep some weight on the other chirality (none once a fixed
+        # name decided: its answer is mostly the same names with left and right swapped, so the
+        # doubt lands on the partner) and get the panel's temperature; both fitted for calibration.
         names, chosen = names_and_probs(best)
         probs = chosen
         doubt = self.settings.chirality_doubt if agreement is None and len(placements) == 2 else 0.0
@@ -374,7 +382,8 @@ class Identifier:
             probs = (1 - doubt) * chosen + doubt * names_and_probs(1 - best)[1]
         probs = _sharpen(probs, self.settings.panel_temperature)
         info = {"colour": use_colour, "mirrored": placements[best].mirrored, "willingness": willingness.tolist()}
-        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight, assign_probs=chosen)
+        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight,
+                              assign_probs=names_and_probs(best, calibrated=False)[1])
 
     def _check(self, test: NeuronTable, templates: list[NeuronTable], use_colour: bool) -> bool:
         """Refuse a missing model or template; returns whether colour can be used."""

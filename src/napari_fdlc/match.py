@@ -102,6 +102,31 @@ def top_k(probs: np.ndarray, names: list[str], k: int) -> tuple[list[list[str]],
     return cand, cand_p
 
 
+def one_to_one(probs: np.ndarray, fixed: dict[int, int] | None = None, iterations: int = 50) -> np.ndarray:
+    """Per-neuron probabilities (N, V; the rest of each row is "no named match") made
+    consistent with one neuron per name: alternately scale every name's column down to a total
+    of at most 1 and every row (with its no-match share) back to 1 (Sinkhorn iterations with a
+    dustbin). The model answers each neuron on its own, so two neighbours can both give most of
+    their mass to one name; the assignment resolves that, and these marginals say so.
+    Measured on held-out labs (fold models, session 5): top-3 up 0.3–8 points, calibration
+    error down on 4 of 5 labs, with the same assignment. ``fixed`` rows (row -> column, the
+    user's decisions) are certain, which takes their names away from every other neuron."""
+    p = np.clip(np.asarray(probs, float), 0.0, None)
+    if p.size == 0:
+        return p
+    for row, col in (fixed or {}).items():
+        p[:, col] = 0.0
+        p[row] = 0.0
+        p[row, col] = 1.0
+    rest = np.clip(1.0 - p.sum(axis=1), 1e-9, None)
+    for _ in range(iterations):
+        p /= np.maximum(p.sum(axis=0), 1.0)
+        total = p.sum(axis=1) + rest
+        p /= total[:, None]
+        rest /= total
+    return p
+
+
 def make_labelling(
     names: list[str],
     probs: np.ndarray,
@@ -113,17 +138,20 @@ def make_labelling(
     """Assign names and fill a :class:`Labelling`. ``fixed`` maps rows to user-given names;
     a user name the vocabulary does not know is kept for that row without a column.
     ``assign_probs`` (default ``probs``): what the assignment is made on, when the reported
-    probabilities are hedged (the panel hedges its chirality but assigns on its best guess)."""
+    probabilities are hedged (the panel hedges its chirality but assigns on its best guess).
+    The probabilities reported (candidates, ``auto_conf``) are :func:`one_to_one`'s; a fixed
+    row keeps the model's own probability of the user's name as its ``auto_conf``."""
     column = {n: i for i, n in enumerate(names)}
     fixed = fixed or {}
     fixed_cols = {row: column[name] for row, name in fixed.items() if name in column}
     choice = assign(probs if assign_probs is None else assign_probs, fixed_cols, no_match_weight)
+    model_probs, probs = probs, one_to_one(probs, fixed_cols)
     auto_id, auto_conf = [], np.zeros(len(probs))
     no_match = np.clip(1.0 - probs.sum(axis=1), 0.0, 1.0)
     for j, col in enumerate(choice):
         if j in fixed:
             auto_id.append(fixed[j])
-            auto_conf[j] = probs[j, col] if col >= 0 else 0.0
+            auto_conf[j] = model_probs[j, col] if col >= 0 else 0.0
         elif col >= 0:
             auto_id.append(names[col])
             auto_conf[j] = probs[j, col]
