@@ -176,5 +176,26 @@ def test_evaluate_writes_every_protocol(tmp_path, corpus_path):
     rows = {tuple(c.strip() for c in line.strip("|").split("|")[1:4]) for line in out.read_text().splitlines()
             if line.startswith("| SK1 |")}
     assert rows == {("pairs", m, i) for m in ("fdlc", "floor") for i in ("position", "colour")} | {
-        ("panel", "fdlc", i) for i in ("position", "colour", "colour, chirality given", "colour, lab handedness")}
+        ("panel", "fdlc", i) for i in ("position", "colour", "colour, the lab's worms in one call", "colour, chirality given", "colour, lab handedness")}
     assert (tmp_path / "docs" / "images" / "calibration.png").exists()
+
+
+def test_label_names_a_lab_of_mirrored_recordings_in_one_call(tmp_path, corpus_path, capsys):
+    """SF's worms are mostly mirrored relative to the atlas, which one worm cannot show (each
+    alone is named on `auto` as the atlas's handedness, ~14 % top-1); all of them in one call
+    lean mirrored clearly enough for one handedness to be chosen for all."""
+    from pathlib import Path
+
+    from napari_fdlc.table import read_table
+
+    tests = sorted((Path(corpus_path) / "SF").glob("*.csv"))
+    assert len(tests) >= 30
+    assert run("label", *tests, "--out", tmp_path / "out") == 0
+    assert "all are named as 'mirrored'" in capsys.readouterr().err
+    right = total = 0
+    for test in tests:
+        truth = read_table(test).labels
+        named = pd.read_csv(tmp_path / "out" / f"{test.stem}.csv", keep_default_na=False)["auto_id"].to_numpy()
+        total += (truth != "").sum()
+        right += ((truth == named) & (truth != "")).sum()
+    assert right / total > 0.6

@@ -174,3 +174,30 @@ def test_temperatures_change_the_confidence_not_the_names(worm, other_worm):
         assert a.auto_id == b.auto_id
         named = np.array([bool(n) for n in a.auto_id])
         assert b.auto_conf[named].mean() > a.auto_conf[named].mean() + 0.02
+
+
+def test_several_recordings_share_a_handedness_when_they_clearly_agree(monkeypatch):
+    """Identifier.label_panel_many: a sign test over the tests' evidence (stubbed here: each
+    test's mirrored-minus-same willingness is in its source) decides one handedness for all."""
+    from napari_fdlc.match import make_labelling
+
+    def fake_label_panel(self, test, panel, use_colour=True, fixed=None):
+        evidence = float(test.source)
+        mirrored = {"same": False, "mirrored": True}.get(self.settings.chirality, evidence > self.settings.mirror_penalty)
+        info = {"willingness": [0.0, evidence - self.settings.mirror_penalty], "mirrored": mirrored}
+        return make_labelling(["A"], np.array([[0.5]]), info=info)
+
+    monkeypatch.setattr(Identifier, "label_panel", fake_label_panel)
+    ident = Identifier(CorrespondenceModel({"layers": 1, "dim": 32}), device="cpu")
+
+    def tests(values):
+        return [NeuronTable(np.zeros((1, 3)), source=str(v)) for v in values]
+
+    # 11 of 12 lean mirrored, but weakly (below the prior): each alone stays "same"
+    leaning = ident.label_panel_many(tests([0.5] * 11 + [-0.3]), panel=None)
+    assert all(r.info["mirrored"] for r in leaning)
+    assert leaning[0].info["batch_handedness"] == {"decided": "mirrored", "lean_mirrored": 11, "tests": 12}
+    mixed = ident.label_panel_many(tests([0.5, -0.5] * 6), panel=None)
+    assert not any(r.info["mirrored"] for r in mixed) and mixed[0].info["batch_handedness"]["decided"] is None
+    told = ident.with_chirality("same").label_panel_many(tests([0.5] * 12), panel=None)
+    assert not any(r.info["mirrored"] for r in told) and "batch_handedness" not in told[0].info

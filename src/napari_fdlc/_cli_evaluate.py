@@ -17,6 +17,9 @@ import numpy as np
 from .errors import FdlcError, atomic_write
 
 
+BATCH_ROW = "colour, the lab's worms in one call"
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--corpus", help="folder with worms.csv (default: ../shared/data/neuropal_corpus or $FDLC_CORPUS)")
     p.add_argument("--labs", nargs="+", default=None)
@@ -95,6 +98,14 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
                 scores.add(identifier.label_panel(test, panel, use_colour=use_colour), test, vocabulary, time.perf_counter() - t0)
             rows.append((lab, "panel", "fdlc", "colour" if use_colour else "position", scores.summary()))
             _log(f"{lab} panel colour={use_colour}: {rows[-1][-1]}")
+        # Every worm of the lab in one call, as `fdlc label` names several recordings: one
+        # handedness for all when they clearly agree (Identifier.label_panel_many).
+        scores = Scores()
+        tests = tables[:panel_worms_per_lab]
+        for test, result in zip(tests, identifier.label_panel_many(tests, panel, use_colour=True)):
+            scores.add(result, test, vocabulary)
+        rows.append((lab, "panel", "fdlc", BATCH_ROW, scores.summary()))
+        _log(f"{lab} panel {BATCH_ROW}: {rows[-1][-1]}")
         # Told the handedness (--chirality same|mirrored), read from the names: each worm's own,
         # and the lab's majority set once for all of them (what a user who sets it for the
         # microscope gets).

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .errors import FdlcError
+from .errors import FdlcError, warn
 from .match import Labelling, make_labelling, name_probabilities
 from .table import COORDS, NeuronTable, read_table, write_table
 
@@ -81,9 +81,14 @@ def label_files(
         from .reference import load_panel
 
         identifier = (Identifier.load(weights) if weights else default_identifier()).with_chirality(chirality)
-        if not template_tables:
-            load_panel()  # refuse a missing panel before any work
-        results = [label_neurons(t, template_tables or None, use_colour, identifier=identifier) for t in test_tables]
+        if template_tables:
+            results = [label_neurons(t, template_tables, use_colour, identifier=identifier) for t in test_tables]
+        else:  # the panel; several recordings share one handedness when they clearly agree
+            results = identifier.label_panel_many(test_tables, load_panel(), use_colour)
+            batch = results[0].info.get("batch_handedness") or {}
+            if batch.get("decided"):
+                warn(f"{batch['lean_mirrored']} of {batch['tests']} recordings lean mirrored relative to the atlas: "
+                     f"all are named as '{batch['decided']}' (pass --chirality to decide yourself)")
     else:
         results = [cpd_labelling(t, template_tables, use_colour) for t in test_tables]
     if len(paths) > 1:
