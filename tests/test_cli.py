@@ -183,14 +183,14 @@ def test_evaluate_writes_every_protocol(tmp_path, corpus_path):
 def test_label_names_a_lab_of_mirrored_recordings_in_one_call(tmp_path, corpus_path, capsys):
     """SF's worms are mostly mirrored relative to the atlas, which one worm cannot show (each
     alone is named on `auto` as the atlas's handedness, ~14 % top-1); all of them in one call
-    lean mirrored clearly enough for one handedness to be chosen for all."""
+    with --shared-handedness lean mirrored clearly enough for one handedness to be chosen."""
     from pathlib import Path
 
     from napari_fdlc.table import read_table
 
     tests = sorted((Path(corpus_path) / "SF").glob("*.csv"))
     assert len(tests) >= 30
-    assert run("label", *tests, "--out", tmp_path / "out") == 0
+    assert run("label", *tests, "--shared-handedness", "--out", tmp_path / "out") == 0
     assert "all are named as 'mirrored'" in capsys.readouterr().err
     right = total = 0
     for test in tests:

@@ -28,6 +28,9 @@ def _label_parser(sub) -> None:
     p.add_argument("--chirality", choices=CHIRALITIES, default="auto",
                    help="handedness of the tests relative to the template(s) or the built-in atlas: auto (default) "
                         "tries both; same / mirrored when you know your microscope (see docs/cli.md)")
+    p.add_argument("--shared-handedness", action="store_true",
+                   help="with --chirality auto and no template: the tests come from one microscope, so name them all in "
+                        "one handedness when they clearly lean one way (a sign test; see docs/cli.md)")
     p.add_argument("--out", required=True, help="output CSV (one test) or directory (several tests)")
     p.set_defaults(run=_run_label)
 
@@ -44,6 +47,7 @@ def _run_label(args) -> int:
         method=args.method,
         weights=args.weights,
         chirality=args.chirality,
+        shared_handedness=args.shared_handedness,
     )
     return 0
 

@@ -395,9 +395,12 @@ class Identifier:
         mirrored placement minus that of the other (no prior); when significantly many tests
         lean one way (one-sided sign test, p < ``BATCH_HANDEDNESS_P``) every test is named in
         that handedness, else each keeps its own choice. Per worm the evidence is weak (right
-        for 50-83 % of the worms of a lab the model never saw) but it leans the right way for
-        every corpus lab, and SF (33 of 36 worms mirrored relative to the atlas) leans 30 of 36
-        the right way. ``info["batch_handedness"]`` says what was decided."""
+        for 50-83 % of the worms of a lab the model never saw); of the corpus labs only SF's
+        count is significant (33 of its 36 worms lean mirrored; 33 are mirrored relative to the
+        atlas), and the others are left to each worm. But a lab can lean the wrong way (the
+        shipped model: 7 of KK's 9 worms, 2 of which are mirrored), so ``fdlc label`` does this
+        only when asked (``--shared-handedness``). ``info["batch_handedness"]`` says what was
+        decided."""
         from scipy.stats import binomtest
 
         results = [self.label_panel(t, panel, use_colour) for t in tests]

@@ -61,8 +61,11 @@ def label_files(
     method: str = "fdlc",
     weights: str | None = None,
     chirality: str = "auto",
+    shared_handedness: bool = False,
 ) -> list[Path]:
-    """Label each test table and write one CSV per test. Returns the paths written."""
+    """Label each test table and write one CSV per test. Returns the paths written.
+    ``shared_handedness``: the panel names the tests in one handedness when they clearly agree
+    (:meth:`Identifier.label_panel_many`)."""
     if top_k < 1:
         raise FdlcError(f"--top-k must be at least 1 (got {top_k})")
     if method not in ("fdlc", "cpd"):
@@ -81,9 +84,9 @@ def label_files(
         from .reference import load_panel
 
         identifier = (Identifier.load(weights) if weights else default_identifier()).with_chirality(chirality)
-        if template_tables:
-            results = [label_neurons(t, template_tables, use_colour, identifier=identifier) for t in test_tables]
-        else:  # the panel; several recordings share one handedness when they clearly agree
+        if template_tables or not shared_handedness:
+            results = [label_neurons(t, template_tables or None, use_colour, identifier=identifier) for t in test_tables]
+        else:
             results = identifier.label_panel_many(test_tables, load_panel(), use_colour)
             batch = results[0].info.get("batch_handedness") or {}
             if batch.get("decided"):
