@@ -116,8 +116,8 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     # The scores of every start are (starts, N, K) exponentials: single precision halves their
     # cost and changes a log-likelihood per neuron by ~1e-6.
     f32 = np.float32
+    weighted_mean, mean = (mixture.mean * inv_var).astype(f32), mixture.mean.astype(f32)
     canon, inv_var, constant = canon.astype(f32), inv_var.astype(f32), np.asarray(constant, f32)
-    weighted_mean, mean = (mixture.mean * (1.0 / var)).astype(f32), mixture.mean.astype(f32)
 
     def log_components(points):  # (..., N, K): log weight × density of each component at each point
         # the Mahalanobis distance expanded into matrix products (10× faster than broadcasting)
