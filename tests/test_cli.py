@@ -199,3 +199,14 @@ def test_label_names_a_lab_of_mirrored_recordings_in_one_call(tmp_path, corpus_p
         total += (truth != "").sum()
         right += ((truth == named) & (truth != "")).sum()
     assert right / total > 0.6
+
+
+def test_shared_handedness_says_when_it_does_not_apply(tmp_path, capsys):
+    from napari_fdlc.reference import generate_worm
+
+    test, template = tmp_path / "t.csv", tmp_path / "T.csv"
+    write_table(generate_worm(seed=3), test)
+    write_table(generate_worm(seed=4), template)
+    assert run("label", test, "--template", template, "--shared-handedness", "--out", tmp_path / "o.csv") == 0
+    err = capsys.readouterr().err
+    assert "--shared-handedness is for the built-in panel" in err and len(err.strip().splitlines()) == 1

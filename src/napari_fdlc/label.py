@@ -79,6 +79,8 @@ def label_files(
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron (a 'label' column with names is needed)")
     paths = _output_paths(tests, out)
+    if shared_handedness and (template_tables or chirality != "auto"):
+        warn("--shared-handedness is for the built-in panel with --chirality auto: ignored here")
     if method == "fdlc":
         from .identify import Identifier, default_identifier, label_neurons
         from .reference import load_panel
