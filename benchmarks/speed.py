@@ -10,7 +10,8 @@ volumes per second when many volumes are given at once. Configurations:
   model on the two placements, chirality choice, colour, what ``fdlc label --template T`` does,
   i.e. the configuration of the accuracy figures;
 * full, panel: the built-in reference panel, what Auto-label does: the test placed in the atlas
-  frame (registration, both chiralities), then 5 templates × 2 chiralities through the model;
+  frame (registration, both chiralities), then 10 templates × 2 chiralities through the model;
+  "handedness set": the same with ``--chirality same`` (one chirality, 10 passes);
 * track: ``fdlc track`` defaults (full search, as above, on the first volume only; every later volume placed
   by the warp of the one before, one model pass, assignment); latency = one volume at a time
   (chunk 1, what a live recording needs), batched = chunk 16; the first volume's search is
@@ -131,6 +132,7 @@ def main(argv=None) -> int:
 
     for device in devices:
         ident = Identifier.load(weights, device=device)
+        told = ident.with_chirality("same")  # one placement instead of two
         reps = args.repeats
         configs = {
             "fdlc full, 1 template": (
@@ -141,6 +143,11 @@ def main(argv=None) -> int:
             f"fdlc full, panel ({len(panel.templates)} templates)": (
                 lambda: ident.label_panel(test, panel).candidates(3),
                 lambda: [ident.label_panel(t, panel).candidates(3) for t in tests[:16]],
+                16,
+            ),
+            "fdlc panel, handedness set (--chirality same)": (
+                lambda: told.label_panel(test, panel).candidates(3),
+                lambda: [told.label_panel(t, panel).candidates(3) for t in tests[:16]],
                 16,
             ),
             "fdlc track (propagated, chunk 1 / 16)": (
