@@ -91,18 +91,19 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
             continue
         panel = make_panel(build_atlas([w for w in worms if w.lab != lab]))
         vocabulary = panel.names
+        tests = tables[:panel_worms_per_lab]
         for use_colour in (False, True):
-            scores = Scores()
-            for test in tables[:panel_worms_per_lab]:
+            scores, named = Scores(), []
+            for test in tests:
                 t0 = time.perf_counter()
-                scores.add(identifier.label_panel(test, panel, use_colour=use_colour), test, vocabulary, time.perf_counter() - t0)
+                named.append(identifier.label_panel(test, panel, use_colour=use_colour))
+                scores.add(named[-1], test, vocabulary, time.perf_counter() - t0)
             rows.append((lab, "panel", "fdlc", "colour" if use_colour else "position", scores.summary()))
             _log(f"{lab} panel colour={use_colour}: {rows[-1][-1]}")
-        # Every worm of the lab in one call, as `fdlc label` names several recordings: one
-        # handedness for all when they clearly agree (Identifier.label_panel_many).
+        # Every worm of the lab in one call, as `fdlc label --shared-handedness` names several
+        # recordings: one handedness for all when they clearly agree (from the answers above).
         scores = Scores()
-        tests = tables[:panel_worms_per_lab]
-        for test, result in zip(tests, identifier.label_panel_many(tests, panel, use_colour=True)):
+        for test, result in zip(tests, identifier.label_panel_many(tests, panel, use_colour=True, first=named)):
             scores.add(result, test, vocabulary)
         rows.append((lab, "panel", "fdlc", BATCH_ROW, scores.summary()))
         _log(f"{lab} panel {BATCH_ROW}: {rows[-1][-1]}")
@@ -113,7 +114,7 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
         lab_mirrored = np.mean(mirrored) > 0.5
         for inp, told in (("colour, chirality given", lambda k: mirrored[k]), ("colour, lab handedness", lambda k: lab_mirrored)):
             scores = Scores()
-            for k, test in enumerate(tables[:panel_worms_per_lab]):
+            for k, test in enumerate(tests):
                 chirality = "mirrored" if told(k) else "same"
                 scores.add(identifier.with_chirality(chirality).label_panel(test, panel, use_colour=True), test, vocabulary)
             rows.append((lab, "panel", "fdlc", inp, scores.summary()))

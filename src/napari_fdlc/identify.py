@@ -388,7 +388,8 @@ class Identifier:
         return make_labelling(names, probs, fixed, info, self.settings.no_match_weight,
                               assign_probs=names_and_probs(best, calibrated=False)[1])
 
-    def label_panel_many(self, tests: list[NeuronTable], panel: Panel, use_colour: bool = True) -> list[Labelling]:
+    def label_panel_many(self, tests: list[NeuronTable], panel: Panel, use_colour: bool = True,
+                         first: list[Labelling] | None = None) -> list[Labelling]:
         """:meth:`label_panel` for several recordings, with one handedness for all of them when
         they agree: handedness is a property of the microscope, and what one worm cannot show
         many can. On ``auto``, each test's evidence is the model's willingness to match its
@@ -400,10 +401,10 @@ class Identifier:
         atlas), and the others are left to each worm. But a lab can lean the wrong way (the
         shipped model: 7 of KK's 9 worms, 2 of which are mirrored), so ``fdlc label`` does this
         only when asked (``--shared-handedness``). ``info["batch_handedness"]`` says what was
-        decided."""
+        decided. ``first``: the tests' :meth:`label_panel` answers when already made."""
         from scipy.stats import binomtest
 
-        results = [self.label_panel(t, panel, use_colour) for t in tests]
+        results = list(first) if first is not None else [self.label_panel(t, panel, use_colour) for t in tests]
         if self.settings.chirality != "auto" or len(tests) < 2:
             return results
         evidence = np.array([r.info["willingness"][1] - r.info["willingness"][0] for r in results])

@@ -19,7 +19,7 @@ median worm was tried and scored worse on the panel (top-1 with colour NP 60 →
 distance prior is gentler in the smaller frame.
 
 The panel (what ``fdlc label`` and Auto-label use without ``--template``) is the atlas's mean
-worm plus a few worms sampled from its per-name spreads, all in the atlas's frame;
+worm plus worms sampled from its per-name spreads (at PANEL_SPREAD of them), all in the atlas's frame;
 :func:`napari_fdlc.match.name_probabilities` averages their answers into one probability per
 name. A test worm is first placed in that frame by :meth:`Atlas.register`
 (:mod:`napari_fdlc.register`: the atlas as a Gaussian mixture, one component per name, its
