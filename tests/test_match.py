@@ -68,6 +68,13 @@ def test_name_probabilities_average_templates_and_skip_unnamed():
     assert probs[0] == pytest.approx([0.4, 0.4])
 
 
+def test_name_probabilities_add_up_a_name_a_template_repeats():
+    p = np.array([[0.3, 0.2, 0.1]])
+    names, probs = name_probabilities([(p, np.array(["A", "B", "A"], object))])
+    assert names == ["A", "B"]
+    assert probs[0] == pytest.approx([0.4, 0.2])
+
+
 def test_labelling_confidence_and_threshold():
     probs = np.array([[0.9, 0.0], [0.0, 0.3]])
     lab = make_labelling(["A", "B"], probs)

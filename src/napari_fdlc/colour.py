@@ -31,13 +31,31 @@ def normal_scores(table: NeuronTable, channels: tuple[str, ...]) -> np.ndarray:
     n = len(values)
     if n == 0 or not channels:
         return np.zeros((n, len(channels)))
-    ranks = rankdata(values, axis=0)  # all channels in one call (its overhead dominates here)
-    return ndtri((ranks - 0.5) / n)
+    return ndtri((_average_ranks(values) - 0.5) / n)
+
+
+def _average_ranks(values: np.ndarray) -> np.ndarray:
+    """Ranks 1..N down each column, ties sharing their mean rank (``rankdata``'s "average"),
+    from one argsort and no Python loop: several times faster than ``rankdata``, whose
+    overhead dominated the colour fusion of every answer."""
+    n = len(values)
+    order = np.argsort(values, axis=0, kind="stable")
+    ordered = np.take_along_axis(values, order, axis=0)
+    differs = ordered[1:] != ordered[:-1]  # between sorted neighbours
+    edge = np.ones((1, values.shape[1]), dtype=bool)
+    position = np.broadcast_to(np.arange(n)[:, None], values.shape)
+    first = np.maximum.accumulate(np.where(np.vstack([edge, differs]), position, 0), axis=0)
+    last = np.where(np.vstack([differs, edge]), position, n)
+    last = np.minimum.accumulate(last[::-1], axis=0)[::-1]
+    ranks = np.empty(values.shape)
+    np.put_along_axis(ranks, order, (first + last) / 2 + 1, axis=0)  # positions first..last of a tie
+    return ranks
 
 
 def colour_log_likelihood(template_scores: np.ndarray, test_scores: np.ndarray, sigma: float = 0.8) -> np.ndarray:
     """(N_test, M_template) log-likelihood (up to a constant) that test j has template i's colour."""
     if template_scores.shape[1] == 0:
         return np.zeros((len(test_scores), len(template_scores)))
-    d2 = ((test_scores[:, None, :] - template_scores[None, :, :]) ** 2).sum(-1)
-    return -d2 / (2 * sigma**2)
+    # |g|^2 + |f|^2 - 2 g.f: a few hundred rows make the (N, M, C) difference array 4× slower.
+    d2 = (test_scores**2).sum(1)[:, None] + (template_scores**2).sum(1)[None, :] - 2 * test_scores @ template_scores.T
+    return -np.maximum(d2, 0.0) / (2 * sigma**2)

@@ -128,41 +128,68 @@ class Identifier:
         template_colour: np.ndarray | None = None,
         test_colours: list[np.ndarray] | None = None,
     ) -> list[np.ndarray]:
-        """log p (N_v, M + 1) for each placed test (N_v, 3) against one template, batched.
+        """log p (N_v, M + 1) for each placed test (N_v, 3) against one template, batched."""
+        colours = None if template_colour is None else [template_colour]
+        return self._forward_grid([template_xyz], tests, colours, test_colours)[0]
 
-        Tests of different sizes are padded to a common size with a mask; the template is given
-        to the model with batch 1, so it is embedded once per chunk (see CorrespondenceModel).
-        """
+    def _forward_grid(
+        self,
+        templates: list[np.ndarray],
+        tests: list[np.ndarray],
+        template_colours: list[np.ndarray] | None = None,
+        test_colours: list[np.ndarray] | None = None,
+    ) -> list[list[np.ndarray]]:
+        """log p (N_v, M_t + 1) of every placed test against every template, ``[t][v]``, as
+        one batch of template × test pairs (on two threads, 20 small passes take twice as long
+        as one batch of 20). Sizes that differ are padded to a common size with a mask. A
+        single template goes to the model with batch 1, so it is embedded once."""
         torch = self.torch
-        if not tests:
-            return []
-        tmpl = torch.as_tensor(template_xyz, dtype=torch.float32, device=self.device)[None]
-        sizes = np.array([len(t) for t in tests])
+        if not tests or not templates:
+            return [[] for _ in templates]
+        with_colour = template_colours is not None and test_colours is not None
+        tmpl, tmpl_mask, tmpl_c = self._padded(templates, template_colours if with_colour else None)
+        test, test_mask, test_c = self._padded(tests, test_colours if with_colour else None)
+        n_t, n_v = len(templates), len(tests)
+        if n_t > 1:  # pair k is template k // n_v with test k % n_v
+            def pairs(x, repeat):
+                return None if x is None else (x.repeat_interleave(n_v, 0) if repeat else x.repeat(n_t, *[1] * (x.dim() - 1)))
+            tmpl, tmpl_mask, tmpl_c = (pairs(x, True) for x in (tmpl, tmpl_mask, tmpl_c))
+            test, test_mask, test_c = (pairs(x, False) for x in (test, test_mask, test_c))
+        # Chunk so that 2000-neuron worms fit in memory.
+        m, n = tmpl.shape[1], test.shape[1]
+        chunk = max(1, int(4e6 // max(1, n * max(m, n))))
+        shared = n_t == 1  # a single template stays batch 1 for every chunk
+        out = []
+        with torch.inference_mode():
+            for s in range(0, len(test), chunk):
+                part = slice(s, s + chunk)
+                a = [x if shared or x is None else x[part] for x in (tmpl, tmpl_mask, tmpl_c)]
+                b = [None if x is None else x[part] for x in (test, test_mask, test_c)]
+                out.extend(self.model(a[0], b[0], a[1], b[1], a[2], b[2]).float().cpu().numpy())
+
+        def real(lp, rows, cols):  # without the padded rows and padded template columns
+            return lp[:rows] if cols == m else np.concatenate([lp[:rows, :cols], lp[:rows, -1:]], axis=1)
+        return [[real(out[t * n_v + v], len(tests[v]), len(templates[t])) for v in range(n_v)] for t in range(n_t)]
+
+    def _padded(self, points: list[np.ndarray], colours: list[np.ndarray] | None):
+        """(B, size, 3) tensor, its (B, size) mask of real rows (None without padding) and the
+        colours padded alike (None when not given)."""
+        torch = self.torch
+        sizes = np.array([len(p) for p in points])
         size = int(sizes.max())
-        batch = np.zeros((len(tests), size, 3), dtype=np.float32)
-        for i, t in enumerate(tests):
-            batch[i, : len(t)] = t
-        tests_t = torch.as_tensor(batch, device=self.device)
+        xyz = np.zeros((len(points), size, 3), dtype=np.float32)
+        for i, p in enumerate(points):
+            xyz[i, : len(p)] = p
         mask = None
         if (sizes < size).any():
             mask = torch.as_tensor(np.arange(size)[None, :] < sizes[:, None], device=self.device)
-        tmpl_c = tests_c = None
-        if template_colour is not None and test_colours is not None:
-            tmpl_c = torch.as_tensor(template_colour, dtype=torch.float32, device=self.device)[None]
-            cbatch = np.zeros((len(tests), size, template_colour.shape[1]), dtype=np.float32)
-            for i, c in enumerate(test_colours):
-                cbatch[i, : len(c)] = c
-            tests_c = torch.as_tensor(cbatch, device=self.device)
-        # Chunk so that 2000-neuron worms fit in memory.
-        chunk = max(1, int(4e6 // max(1, size * max(tmpl.shape[1], size))))
-        out = []
-        with torch.inference_mode():
-            for s in range(0, len(tests), chunk):
-                m = None if mask is None else mask[s : s + chunk]
-                tc = None if tests_c is None else tests_c[s : s + chunk]
-                lp = self.model(tmpl, tests_t[s : s + chunk], None, m, tmpl_c, tc).float().cpu().numpy()
-                out.extend(lp)
-        return [lp[:n] for lp, n in zip(out, sizes)]
+        col = None
+        if colours is not None:
+            c = np.zeros((len(points), size, colours[0].shape[1]), dtype=np.float32)
+            for i, v in enumerate(colours):
+                c[i, : len(v)] = v
+            col = torch.as_tensor(c, device=self.device)
+        return torch.as_tensor(xyz, device=self.device), mask, col
 
     def _align(
         self,
@@ -257,9 +284,10 @@ class Identifier:
             if agreement is not None and not self.settings.refine_steps:
                 f["best"] = int(np.argmax(agreement))
                 f["log_p"] = f["all_log_p"][f["best"]]
+            colour = self._colour_evidence(template, test, model_saw_colour) if use_colour else None
             info = {"mirrored": bool(f["mirrored"][f["best"]]), "willingness": f["willingness"].tolist(),
-                    "assign_probs": self._answer(f["log_p"], template, test, use_colour, model_saw_colour, calibrated=False)}
-            out.append((self._answer(f["log_p"], template, test, use_colour, model_saw_colour), info))
+                    "assign_probs": self._answer(f["log_p"], colour, calibrated=False)}
+            out.append((self._answer(f["log_p"], colour), info))
         return out
 
     def search(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True, refine_steps: int | None = None):
@@ -275,16 +303,14 @@ class Identifier:
             f["mirrored"] = flags
         return found, tc is not None
 
-    def _answer(self, log_p: np.ndarray, template, test, use_colour: bool, model_saw_colour: bool,
-                calibrated: bool = True) -> np.ndarray:
-        """The model's log p for one placement -> probabilities (N, M + 1), colour fused;
-        ``calibrated``: with the temperature. The names are assigned on the answer without it
-        (the weights of colour and of "no match" were chosen for top-1 at temperature 1), so that
-        calibration changes the confidences reported, not the names."""
+    def _answer(self, log_p: np.ndarray, colour: np.ndarray | None, calibrated: bool = True) -> np.ndarray:
+        """The model's log p for one placement -> probabilities (N, M + 1), fused with the
+        ``colour`` evidence (:meth:`_colour_evidence`, None: position only); ``calibrated``: with
+        the temperature. The names are assigned on the answer without it (the weights of colour
+        and of "no match" were chosen for top-1 at temperature 1), so that calibration changes
+        the confidences reported, not the names."""
         lp = self._calibrate(log_p) if calibrated else log_p
-        if use_colour:
-            lp = self._fuse_colour(lp, template, test, model_saw_colour)
-        return np.exp(lp)
+        return np.exp(_fuse_colour(lp, colour))
 
     def _model_colours(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool):
         """Colour inputs for a model trained with colour (normal scores of R, G, B), or Nones
@@ -309,13 +335,15 @@ class Identifier:
         top = lp.max(axis=1, keepdims=True)  # (np.logaddexp.reduce takes 5× longer)
         return lp - top - np.log(np.exp(lp - top).sum(axis=1, keepdims=True))
 
-    def _fuse_colour(self, log_p: np.ndarray, template: NeuronTable, test: NeuronTable, model_saw_colour: bool) -> np.ndarray:
-        """Colour likelihood fused with the positional probabilities. When the model itself
+    def _colour_evidence(self, template: NeuronTable, test: NeuronTable, model_saw_colour: bool) -> np.ndarray | None:
+        """(N_test, M_template) weighted colour log-likelihood ratios, added to the positional
+        log-probabilities by :func:`_fuse_colour` (None: no channel in common). It depends on the
+        two tables only, not on the placement: computed once per pair. When the model itself
         could not take colour (a table lacks one of R, G, B), the channels the two tables share
         are still used, with the weight of a position-only model."""
         channels = colour_model.shared_channels(template, test)
         if not channels:
-            return log_p
+            return None
         f = colour_model.normal_scores(template, channels)
         g = colour_model.normal_scores(test, channels)
         sigma = self.settings.colour_sigma
@@ -323,11 +351,7 @@ class Identifier:
         # so "no match" keeps ratio 1 and colour only reorders real candidates.
         llr = colour_model.colour_log_likelihood(f, g, sigma) - len(channels) * np.log(sigma)
         llr = llr + 0.5 * (g**2).sum(axis=1, keepdims=True)
-        fused = log_p.copy()
-        weight = self.settings.colour_weight if model_saw_colour else self.settings.fallback_colour_weight
-        fused[:, :-1] += weight * llr
-        fused -= fused.max(axis=1, keepdims=True)
-        return fused - np.log(np.exp(fused).sum(axis=1, keepdims=True))
+        return (self.settings.colour_weight if model_saw_colour else self.settings.fallback_colour_weight) * llr
 
     def label(
         self,
@@ -359,19 +383,25 @@ class Identifier:
         use_colour = self._check(test, panel.templates, use_colour)
         placements = panel.atlas.register(test, use_colour, self._chiralities())
         tc_sc = [self._model_colours(t, [test], use_colour) for t in panel.templates]
-        per_candidate = [  # per template: (placements, N, M + 1)
-            np.stack(self._forward_many(t.xyz, [p.xyz for p in placements], tc, None if sc is None else sc * len(placements)))
-            for t, (tc, sc) in zip(panel.templates, tc_sc)
+        with_colour = all(tc is not None for tc, _ in tc_sc)
+        per_candidate = [  # per template: (placements, N, M + 1), all from one batch
+            np.stack(lps) for lps in self._forward_grid(
+                [t.xyz for t in panel.templates], [p.xyz for p in placements],
+                [tc for tc, _ in tc_sc] if with_colour else None,
+                tc_sc[0][1] * len(placements) if with_colour else None)
         ]
         willingness = sum(_willingness(lps, len(t)) for lps, t in zip(per_candidate, panel.templates))
         willingness = willingness - self.settings.mirror_penalty * np.array([p.mirrored for p in placements])
         agreement = _agreement_with_fixed(per_candidate, panel.templates, fixed)
         best = int(np.argmax(willingness if agreement is None else agreement))
 
+        colours = [self._colour_evidence(t, test, tc is not None) if use_colour else None
+                   for t, (tc, _) in zip(panel.templates, tc_sc)]
+
         def names_and_probs(k, calibrated=True):  # the panel's answer for placement k: (names, (N, names))
             return name_probabilities([
-                (self._answer(lps[k], t, test, use_colour, tc is not None, calibrated)[:, :-1], t.labels)
-                for lps, t, (tc, _) in zip(per_candidate, panel.templates, tc_sc)
+                (self._answer(lps[k], colour, calibrated)[:, :-1], t.labels)
+                for lps, t, colour in zip(per_candidate, panel.templates, colours)
             ])
 
         # The names are assigned on the chosen placement's answer without the temperatures.
@@ -432,6 +462,17 @@ class Identifier:
                 warn("no colour channel in common with the template(s): identifying by position only")
             use_colour = False
         return use_colour
+
+
+def _fuse_colour(log_p: np.ndarray, colour: np.ndarray | None) -> np.ndarray:
+    """log p (N, M + 1) with the colour evidence (N, M) added to the real columns ("no match"
+    keeps ratio 1: colour only reorders real candidates), renormalised."""
+    if colour is None:
+        return log_p
+    fused = log_p.copy()
+    fused[:, :-1] += colour
+    fused -= fused.max(axis=1, keepdims=True)
+    return fused - np.log(np.exp(fused).sum(axis=1, keepdims=True))
 
 
 def _sharpen(probs: np.ndarray, temperature: float) -> np.ndarray:

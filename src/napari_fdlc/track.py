@@ -250,12 +250,14 @@ def _match_rate(log_p: np.ndarray) -> float:
 def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: TrackSettings, fit: bool = True) -> dict:
     """Calibrated, colour-fused log p, its one-to-one assignment onto the reference's neurons,
     and (``fit``) the warp that carries this volume onto the reference, fitted on the assignment."""
+    from .identify import _fuse_colour
+
     lp, placed = out
     rate = _match_rate(lp)
     lp = identifier._calibrate(lp)
     if s.use_colour:
         saw = identifier._takes_colour([ref.table, volume], s.use_colour)
-        lp = identifier._fuse_colour(lp, ref.table, volume, model_saw_colour=saw)
+        lp = _fuse_colour(lp, identifier._colour_evidence(ref.table, volume, model_saw_colour=saw))
     if s.position_sigma_um > 0:
         lp = _fuse_position(lp, placed, ref.xyz, s.position_sigma_um)
     p = np.exp(lp[:, :-1])

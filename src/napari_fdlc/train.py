@@ -467,8 +467,8 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
             return cache[k]
         return call
 
-    patched = [(identifier, "_forward_many", lambda xyz, tests, tc=None, sc=None: (
-                   xyz.tobytes(), tuple(t.tobytes() for t in tests), tc is not None)),
+    patched = [(identifier, "_forward_grid", lambda templates, tests, tc=None, sc=None: (
+                   tuple(t.tobytes() for t in templates), tuple(t.tobytes() for t in tests), tc is not None)),
                (identifier, "place", lambda template, tests, use_colour=True: (
                    id(template), tuple(map(id, tests)), use_colour))]
     patched += [(panel.atlas, "register", lambda test, use_colour=True, chiralities=(False, True): (id(test), use_colour, chiralities))
