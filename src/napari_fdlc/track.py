@@ -45,7 +45,7 @@ import pandas as pd
 
 from .errors import FdlcError, TableError
 from .geometry import apply_affine, canonical_frame, fit_affine
-from .match import assign
+from .match import assign, min_cost_matching
 from .simulate import bend
 from .table import COORDS, NeuronTable, read_table
 
@@ -303,28 +303,17 @@ def _geometric_step(ref: _Reference, volume: NeuronTable, warp: Warp, s: TrackSe
     with the reference by the one-to-one assignment on squared distance (pairs further apart
     than ``gate_um`` stay unpaired), and fit its own warp on those pairs. With ``pairs``,
     returns (warp, partner index per neuron or -1)."""
-    from scipy.optimize import linear_sum_assignment
-
-    n, m = len(volume), len(ref.xyz)
+    n = len(volume)
     choice = np.full(n, UNTRACKED)
+    gate = np.full(n, s.gate_um**2)
     for _ in range(max(1, s.geometry_iterations)):  # ICP-like: pair, fit, pair again
-        placed = warp(volume.xyz)
-        d2 = _sqdist(placed, ref.xyz)
-        cost = np.full((n, m + n), 1e9)
-        cost[:, :m] = np.minimum(d2, 1e8)
-        cost[np.arange(n), m + np.arange(n)] = s.gate_um**2
-        rows, cols = linear_sum_assignment(cost)
-        paired = cols < m
         previous = choice
-        choice = np.full(n, UNTRACKED)
-        choice[rows[paired]] = cols[paired]
+        choice = min_cost_matching(_sqdist(warp(volume.xyz), ref.xyz), gate)
+        paired = choice >= 0
         if paired.sum() < 4 or np.array_equal(choice, previous):
             break  # converged: the warp was fitted on these very pairs
-        weights = np.zeros(n)
-        weights[rows[paired]] = 1.0
-        target = np.zeros((n, 3))
-        target[rows[paired]] = ref.xyz[cols[paired]]
-        warp = fit_warp(volume.xyz, target, weights, s.warp_sigma_um, s.warp_smoothness)
+        target = ref.xyz[np.maximum(choice, 0)]
+        warp = fit_warp(volume.xyz, target, paired.astype(float), s.warp_sigma_um, s.warp_smoothness)
     return (warp, choice) if pairs else warp
 
 
