@@ -3,7 +3,7 @@ import itertools
 import numpy as np
 import pytest
 
-from napari_fdlc.match import assign, make_labelling, name_probabilities, one_to_one, top_k
+from napari_fdlc.match import assign, make_labelling, min_cost_matching, name_probabilities, one_to_one, top_k
 
 
 def brute_force(probs, weight=1.0):
@@ -36,6 +36,24 @@ def test_assignment_equals_brute_force(seed, weight):
     assert score == pytest.approx(best)
     used = got[got >= 0]
     assert len(used) == len(set(used))
+
+
+@pytest.mark.parametrize("shape", [(30, 40), (40, 30), (25, 25)])
+def test_capped_matching_costs_what_a_dustbin_per_row_costs(shape):
+    from scipy.optimize import linear_sum_assignment
+
+    rng = np.random.default_rng(sum(shape))
+    n, m = shape
+    cost, unmatched = rng.random((n, m)) * 10, rng.random(n) * 4
+    got = min_cost_matching(cost, unmatched)
+    dustbin = np.full((n, m + n), 1e9)
+    dustbin[:, :m] = cost
+    dustbin[np.arange(n), m + np.arange(n)] = unmatched
+    r, c = linear_sum_assignment(dustbin)
+    total = np.where(got >= 0, cost[np.arange(n), np.maximum(got, 0)], unmatched).sum()
+    assert total == pytest.approx(dustbin[r, c].sum())
+    used = got[got >= 0]
+    assert len(used) == len(set(used)) and (got >= 0).any() and (got < 0).any()
 
 
 def test_fixed_rows_are_kept_and_their_names_taken():

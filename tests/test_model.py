@@ -43,6 +43,24 @@ def test_padding_does_not_change_results():
     assert torch.allclose(padded[:, :5, 10], out[:, :, 7], atol=1e-5)
 
 
+def test_templates_in_one_batch_answer_as_one_at_a_time(worm, other_worm):
+    torch.manual_seed(0)
+    model = CorrespondenceModel({"layers": 2, "dim": 32, "colour_channels": 3})
+    for p in model.parameters():  # no zero-initialised branch: every input must count
+        torch.nn.init.normal_(p, std=0.2)
+    identifier = Identifier(model)
+    rng = np.random.default_rng(0)
+    templates = [worm.xyz, worm.xyz[:150] + rng.normal(0, 2, (150, 3))]  # two sizes: padded
+    tests = [other_worm.xyz[:120], other_worm.xyz[10:] @ np.diag([1.0, 1.0, -1.0])]
+    colours = [rng.normal(size=(len(t), 3)) for t in templates]
+    test_colours = [rng.normal(size=(len(t), 3)) for t in tests]
+    grid = identifier._forward_grid(templates, tests, colours, test_colours)
+    for t, (xyz, colour) in enumerate(zip(templates, colours)):
+        for v, one in enumerate(identifier._forward_many(xyz, tests, colour, test_colours)):
+            assert grid[t][v].shape == (len(tests[v]), len(xyz) + 1)
+            assert np.allclose(grid[t][v], one, atol=1e-4)
+
+
 def test_loss_falls_on_one_pair():
     torch.manual_seed(0)
     model = CorrespondenceModel({"layers": 1, "dim": 32})

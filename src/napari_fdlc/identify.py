@@ -151,10 +151,8 @@ class Identifier:
         test, test_mask, test_c = self._padded(tests, test_colours if with_colour else None)
         n_t, n_v = len(templates), len(tests)
         if n_t > 1:  # pair k is template k // n_v with test k % n_v
-            def pairs(x, repeat):
-                return None if x is None else (x.repeat_interleave(n_v, 0) if repeat else x.repeat(n_t, *[1] * (x.dim() - 1)))
-            tmpl, tmpl_mask, tmpl_c = (pairs(x, True) for x in (tmpl, tmpl_mask, tmpl_c))
-            test, test_mask, test_c = (pairs(x, False) for x in (test, test_mask, test_c))
+            tmpl, tmpl_mask, tmpl_c = (None if x is None else x.repeat_interleave(n_v, 0) for x in (tmpl, tmpl_mask, tmpl_c))
+            test, test_mask, test_c = (None if x is None else x.repeat(n_t, *[1] * (x.dim() - 1)) for x in (test, test_mask, test_c))
         # Chunk so that 2000-neuron worms fit in memory.
         m, n = tmpl.shape[1], test.shape[1]
         chunk = max(1, int(4e6 // max(1, n * max(m, n))))
@@ -337,12 +335,13 @@ class Identifier:
 
     def _colour_evidence(self, template: NeuronTable, test: NeuronTable, model_saw_colour: bool) -> np.ndarray | None:
         """(N_test, M_template) weighted colour log-likelihood ratios, added to the positional
-        log-probabilities by :func:`_fuse_colour` (None: no channel in common). It depends on the
-        two tables only, not on the placement: computed once per pair. When the model itself
+        log-probabilities by :func:`_fuse_colour` (None: no channel in common, or weight 0). It
+        depends on the two tables only, not on the placement: computed once per pair. When the model itself
         could not take colour (a table lacks one of R, G, B), the channels the two tables share
         are still used, with the weight of a position-only model."""
+        weight = self.settings.colour_weight if model_saw_colour else self.settings.fallback_colour_weight
         channels = colour_model.shared_channels(template, test)
-        if not channels:
+        if not channels or weight == 0:
             return None
         f = colour_model.normal_scores(template, channels)
         g = colour_model.normal_scores(test, channels)
@@ -351,7 +350,7 @@ class Identifier:
         # so "no match" keeps ratio 1 and colour only reorders real candidates.
         llr = colour_model.colour_log_likelihood(f, g, sigma) - len(channels) * np.log(sigma)
         llr = llr + 0.5 * (g**2).sum(axis=1, keepdims=True)
-        return (self.settings.colour_weight if model_saw_colour else self.settings.fallback_colour_weight) * llr
+        return weight * llr
 
     def label(
         self,
