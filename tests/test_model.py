@@ -118,6 +118,19 @@ def test_any_neuron_count(identifier, other_worm, n):
     assert len(named) == len(set(named))
 
 
+@pytest.mark.parametrize("n", [1, 2, 2000])
+def test_any_neuron_count_against_the_panel(identifier, n):
+    from napari_fdlc.reference import load_panel
+
+    rng = np.random.default_rng(n)
+    test = NeuronTable(rng.normal(size=(n, 3)) * [40, 10, 8], {c: rng.random(n) for c in "RGB"})
+    result = identifier.label_panel(test, load_panel())  # 10 templates × 2 placements, one batch
+    assert len(result.auto_id) == n
+    assert np.all(result.probs.sum(1) <= 1 + 1e-6)
+    named = [x for x in result.auto_id if x]
+    assert len(named) == len(set(named))
+
+
 def test_weights_round_trip_and_refusals(tmp_path):
     model = CorrespondenceModel({"layers": 1, "dim": 32})
     save_model(model, tmp_path / "m", {"note": "x"})
