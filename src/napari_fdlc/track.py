@@ -64,7 +64,8 @@ class TrackSettings:
     no_match_weight: float = 0.2  # see match.assign
     # Width of the smooth non-rigid part of the propagated warp (0: affine only) and the ridge on
     # it. 30 µm and 0.1 (session 6; were 20 and 0.3) were chosen on synthetic sequences of other
-    # seeds than the benchmark's: at 3× motion geometry alone 95.5 -> 96.7 %, fdlc 95.1 -> 97.3 %.
+    # seeds than the benchmark's (a wider, less stiff displacement follows the bending body): at
+    # 3× motion on the confirming seeds, geometry alone 94.7 -> 96.8 %, fdlc 95.1 -> 97.3 %.
     warp_sigma_um: float = 30.0
     warp_smoothness: float = 0.1
     warp_min_prob: float = 0.1  # matches less likely than this do not shape the warp
