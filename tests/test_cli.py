@@ -210,3 +210,16 @@ def test_shared_handedness_says_when_it_does_not_apply(tmp_path, capsys):
     assert run("label", test, "--template", template, "--shared-handedness", "--out", tmp_path / "o.csv") == 0
     err = capsys.readouterr().err
     assert "--shared-handedness is for the built-in panel" in err and len(err.strip().splitlines()) == 1
+
+
+def test_label_with_a_template_joins_the_atlas_unless_told_not_to(tmp_path, table_files):
+    """The shipped model's settings weight the atlas's answer beside a template; --no-atlas
+    gives the template's answer alone (the same names offered, other probabilities)."""
+    test, template = table_files
+    joined, alone = tmp_path / "joined.csv", tmp_path / "alone.csv"
+    assert run("label", test, "--template", template, "--out", joined) == 0
+    assert run("label", test, "--template", template, "--no-atlas", "--out", alone) == 0
+    a, b = pd.read_csv(joined), pd.read_csv(alone)
+    assert len(a) == len(b) and not np.allclose(a["prob_1"], b["prob_1"])
+    names = set(pd.read_csv(template)["label"].dropna())
+    assert set(a["auto_id"].dropna()) <= names and set(b["auto_id"].dropna()) <= names

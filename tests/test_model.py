@@ -232,3 +232,24 @@ def test_several_recordings_share_a_handedness_when_they_clearly_agree(monkeypat
     assert not any(r.info["mirrored"] for r in mixed) and mixed[0].info["batch_handedness"]["decided"] is None
     told = ident.with_chirality("same").label_panel_many(tests([0.5] * 12), panel=None)
     assert not any(r.info["mirrored"] for r in told) and "batch_handedness" not in told[0].info
+
+
+def test_the_atlas_joins_a_template_only_when_weighted_and_when_it_knows_the_names(identifier, worm, other_worm):
+    from napari_fdlc.reference import load_atlas
+
+    atlas = load_atlas()
+    alone = identifier.label(other_worm, [worm])
+    assert identifier.label(other_worm, [worm], atlas=atlas).auto_id == alone.auto_id  # weight 0: unchanged
+    weighted = identifier.with_settings(atlas_weight=1.0, atlas_weight_position=1.0)
+    joined = weighted.label(other_worm, [worm], atlas=atlas)
+    assert joined.info["atlas"] and not alone.info["atlas"]
+    assert not np.allclose(joined.probs, alone.probs)
+    named = [x for x in joined.auto_id if x]
+    assert len(named) == len(set(named)) and set(named) <= set(worm.names)
+    # The atlas is the better namer here (the untrained model is not): joining it must help.
+    truth = other_worm.labels
+    hits = {k: np.mean([a == t for a, t in zip(r.auto_id, truth) if t in set(worm.names)]) for k, r in (("alone", alone), ("joined", joined))}
+    assert hits["joined"] > hits["alone"] + 0.2
+    # A template whose names the atlas does not know cannot say its handedness: no atlas.
+    renamed = NeuronTable(worm.xyz, worm.colours, np.array([f"X{i}" for i in range(len(worm))], dtype=object))
+    assert not weighted.label(other_worm, [renamed], atlas=atlas).info["atlas"]

@@ -66,9 +66,12 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
     for lab in labs:
         tables = [w.table for w in worms if w.lab == lab]
         pairs = pair_list(tables, pairs_per_lab, seed=0)
+        # The built-in atlas (beside a template, and the panel's) is rebuilt WITHOUT this lab, so
+        # the names and positions it offers never come from the worms being scored.
+        atlas = build_atlas([w for w in worms if w.lab != lab])
         methods = {
-            ("pairs", "fdlc", "position"): lambda T, t: identifier.label(t, [T], use_colour=False),
-            ("pairs", "fdlc", "colour"): lambda T, t: identifier.label(t, [T], use_colour=True),
+            ("pairs", "fdlc", "position"): lambda T, t: identifier.label(t, [T], use_colour=False, atlas=atlas),
+            ("pairs", "fdlc", "colour"): lambda T, t: identifier.label(t, [T], use_colour=True, atlas=atlas),
             ("pairs", "floor", "position"): lambda T, t: baseline_labelling(floor_match, t, [T], False),
             ("pairs", "floor", "colour"): lambda T, t: baseline_labelling(floor_match, t, [T], True),
         }
@@ -85,11 +88,9 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
                 calib.setdefault(key[2], Scores()).correct.extend(scores.correct)
                 calib[key[2]].conf.extend(scores.conf)
             _log(f"{lab} {key}: {rows[-1][-1]}")
-        # Panel: an atlas built WITHOUT this lab, so the names and positions it offers never
-        # come from the worms being scored.
         if panel_worms_per_lab <= 0:
             continue
-        panel = make_panel(build_atlas([w for w in worms if w.lab != lab]))
+        panel = make_panel(atlas)
         vocabulary = panel.names
         tests = tables[:panel_worms_per_lab]
         for use_colour in (False, True):

@@ -31,6 +31,8 @@ def _label_parser(sub) -> None:
     p.add_argument("--shared-handedness", action="store_true",
                    help="with --chirality auto and no template: the tests come from one microscope, so name them all in "
                         "one handedness when they clearly lean one way (a sign test; see docs/cli.md)")
+    p.add_argument("--no-atlas", dest="use_atlas", action="store_false",
+                   help="with --template: names from the template(s) alone, without the built-in atlas's own answer")
     p.add_argument("--out", required=True, help="output CSV (one test) or directory (several tests)")
     p.set_defaults(run=_run_label)
 
@@ -48,6 +50,7 @@ def _run_label(args) -> int:
         weights=args.weights,
         chirality=args.chirality,
         shared_handedness=args.shared_handedness,
+        use_atlas=args.use_atlas,
     )
     return 0
 

@@ -96,7 +96,9 @@ def mirrored_relative_to(atlas, worm: NeuronTable) -> bool:
     """Whether a labelled worm has the other handedness than the atlas (names give it: the best
     mirrored fit of its named neurons onto the atlas means is better than the best proper one);
     False with fewer than 4 names in common."""
-    return bool(_mirrored(atlas.names, atlas.mean, worm, min_names=4))
+    from .geometry import mirrored_by_names
+
+    return bool(mirrored_by_names(atlas.names, atlas.mean, worm, min_names=4))
 
 
 def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
@@ -104,7 +106,7 @@ def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
     or, without one, to the built-in atlas — the value of ``--chirality`` for recordings made
     like it. Refuses a worm with fewer than 6 names in common (one line that says so)."""
     from .errors import FdlcError
-    from .geometry import canonical_frame
+    from .geometry import canonical_frame, mirrored_by_names
     from .reference import load_atlas
 
     if reference is None:
@@ -112,20 +114,9 @@ def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
         names, xyz = atlas.names, atlas.mean
     else:
         names, xyz = reference.labels, canonical_frame(reference.xyz)[0]
-    mirrored = _mirrored(names, xyz, worm, min_names=6)
+    mirrored = mirrored_by_names(names, xyz, worm, min_names=6)
     if mirrored is None:
         raise FdlcError(f"{worm.source}: fewer than 6 named neurons in common with the reference; "
                         "the handedness needs at least 6 (label a few left/right pairs)")
     return "mirrored" if mirrored else "same"
 
-
-def _mirrored(names, xyz: np.ndarray, worm: NeuronTable, min_names: int) -> bool | None:
-    """Whether ``worm``'s named neurons fit the reference (``names`` at ``xyz``) better mirrored
-    than proper; None with fewer than ``min_names`` names in common."""
-    from .geometry import N_PROPER, canonical_frame, true_orientation
-
-    index = {n: i for i, n in enumerate(names) if n}
-    pairs = np.array([(index[n], j) for j, n in enumerate(worm.labels) if n in index])
-    if len(pairs) < min_names:
-        return None
-    return true_orientation(xyz, canonical_frame(worm.xyz)[0], pairs) >= N_PROPER

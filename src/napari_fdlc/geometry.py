@@ -107,3 +107,14 @@ def true_orientation(template: np.ndarray, test: np.ndarray, pairs: np.ndarray) 
     residuals = np.array(residuals)
     same_class = residuals <= residuals.min() * (1 + 1e-6) + 1e-9
     return int(np.argmin(np.where(same_class, angles, np.inf)))
+
+
+def mirrored_by_names(names, xyz: np.ndarray, worm, min_names: int) -> bool | None:
+    """Whether a labelled ``worm``'s named neurons fit a reference (``names`` at ``xyz``, its
+    canonical frame) better mirrored than proper; None with fewer than ``min_names`` names in
+    common."""
+    index = {n: i for i, n in enumerate(names) if n}
+    pairs = np.array([(index[n], j) for j, n in enumerate(worm.labels) if n in index])
+    if len(pairs) < min_names:
+        return None
+    return true_orientation(xyz, canonical_frame(worm.xyz)[0], pairs) >= N_PROPER

@@ -27,13 +27,13 @@ import numpy as np
 
 from . import colour as colour_model
 from .errors import FdlcError, ModelError, warn
-from .geometry import CHIRALITIES, apply_affine, compose_affine, fit_affine
+from .geometry import CHIRALITIES, apply_affine, compose_affine, fit_affine, mirrored_by_names
 from .match import Labelling, make_labelling, name_probabilities
 from .register import register, template_mixture
 from .table import NeuronTable
 
 if TYPE_CHECKING:
-    from .reference import Panel
+    from .reference import Atlas, Panel
 
 WEIGHTS_NAME = "fdlc_model"
 # The prior against a mirrored placement that ships (see InferenceSettings.mirror_penalty), not
@@ -70,6 +70,11 @@ class InferenceSettings:
     fallback_colour_weight: float = 1.0
     chirality_doubt: float = 0.0  # panel: weight of the other chirality's answer
     panel_temperature: float = 1.0  # panel: on the averaged answer (fitted on training labs)
+    # With a template: the weight of the atlas's own answer (registration posterior, no model)
+    # multiplied into the template's, with colour and position only; 0 = the template alone.
+    # Fitted on training labs, each scored with an atlas built without it.
+    atlas_weight: float = 0.0
+    atlas_weight_position: float = 0.0
     no_match_weight: float = 0.2  # see match.assign
 
     @classmethod
@@ -358,9 +363,12 @@ class Identifier:
         templates: list[NeuronTable],
         use_colour: bool = True,
         fixed: dict[int, str] | None = None,
+        atlas: Atlas | None = None,
     ) -> Labelling:
         """Names for every test neuron from one or several labelled templates, each matched in
-        its own registration. ``fixed`` maps rows to names the user decided."""
+        its own registration. ``fixed`` maps rows to names the user decided. With an ``atlas``
+        (and an atlas weight in the settings), the templates' answer is multiplied by the
+        atlas's own answer (:meth:`_atlas_answer`) raised to that weight."""
         use_colour = self._check(test, templates, use_colour)
         per_template, to_assign, infos = [], [], []
         for template in templates:
@@ -369,9 +377,45 @@ class Identifier:
             to_assign.append((info.pop("assign_probs")[:, :-1], template.labels))
             infos.append(info)
         names, probs = name_probabilities(per_template)
-        info = {"templates": infos, "colour": use_colour}
-        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight,
-                              assign_probs=name_probabilities(to_assign)[1])
+        assign_probs = name_probabilities(to_assign)[1]
+        probs, assign_probs, joined = self._join_atlas(test, templates[0], infos[0]["mirrored"], names, probs,
+                                                       assign_probs, use_colour, atlas)
+        info = {"templates": infos, "colour": use_colour, "atlas": joined}
+        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight, assign_probs=assign_probs)
+
+    def _join_atlas(self, test: NeuronTable, template: NeuronTable, mirrored_to_template: bool, names: list[str],
+                    probs: np.ndarray, assign_probs: np.ndarray, use_colour: bool, atlas: Atlas | None):
+        """(probs, assign_probs, joined): the templates' answer over ``names`` times the atlas's
+        answer (:meth:`_atlas_answer`) raised to the fitted weight; unchanged (joined False)
+        without an atlas, at weight 0, or when the template cannot place the atlas."""
+        weight = self.settings.atlas_weight if use_colour else self.settings.atlas_weight_position
+        if atlas is None or weight <= 0:
+            return probs, assign_probs, False
+        prior = self._atlas_answer(test, template, mirrored_to_template, atlas, names, use_colour)
+        if prior is None:
+            return probs, assign_probs, False
+        # Names on the product itself; the probabilities reported temper the atlas's part like
+        # the model's (the temperature divides the whole log-answer).
+        return _times(probs, prior, weight / self.settings.temperature), _times(assign_probs, prior, weight), True
+
+    def _atlas_answer(self, test: NeuronTable, template: NeuronTable, mirrored_to_template: bool, atlas: Atlas,
+                      names: list[str], use_colour: bool) -> np.ndarray | None:
+        """The atlas's answer for the test in the template's names: (N, names + 1), the last
+        column "none". A template is labelled, so its names give its handedness relative to the
+        atlas, and with the model's choice for the test relative to the template, the test's
+        (None when the template shares fewer than 4 names with the atlas). A name the atlas
+        lacks gets the neuron's mean over the names it knows: no opinion."""
+        template_mirrored = mirrored_by_names(atlas.names, atlas.mean, template, min_names=4)
+        if template_mirrored is None:
+            return None
+        resp, none = atlas.posterior(test, use_colour, mirrored=bool(template_mirrored) != bool(mirrored_to_template))
+        column = {n: i for i, n in enumerate(atlas.names)}
+        known = np.array([n in column for n in names])
+        out = np.empty((len(test), len(names) + 1))
+        out[:, :-1][:, known] = resp[:, [column[n] for n, k in zip(names, known) if k]]
+        out[:, :-1][:, ~known] = out[:, :-1][:, known].mean(axis=1, keepdims=True) if known.any() else 1.0
+        out[:, -1] = none
+        return out
 
     def label_panel(self, test: NeuronTable, panel: Panel, use_colour: bool = True, fixed: dict[int, str] | None = None) -> Labelling:
         """Names from the built-in panel. The test is placed in the atlas frame once per
@@ -474,6 +518,15 @@ def _fuse_colour(log_p: np.ndarray, colour: np.ndarray | None) -> np.ndarray:
     return fused - np.log(np.exp(fused).sum(axis=1, keepdims=True))
 
 
+def _times(probs: np.ndarray, answer: np.ndarray, weight: float) -> np.ndarray:
+    """``probs`` (N, names; the rest of each row is "no match") times another ``answer`` (N,
+    names + 1, the last column "none") raised to ``weight``, renormalised: a product of
+    experts. The small floor keeps one expert from vetoing a name outright."""
+    full = np.hstack([probs, np.clip(1 - probs.sum(axis=1, keepdims=True), 0, None)])
+    full = full * (answer + 1e-4) ** weight
+    return (full / full.sum(axis=1, keepdims=True))[:, :-1]
+
+
 def _sharpen(probs: np.ndarray, temperature: float) -> np.ndarray:
     """``probs`` (N, names; the rest of each row is "no match") raised to 1/temperature and
     renormalised with the no-match share. Averaging the templates' answers leaves the panel
@@ -523,16 +576,19 @@ def label_neurons(
     use_colour: bool = True,
     fixed: dict[int, str] | None = None,
     identifier: Identifier | None = None,
+    use_atlas: bool = True,
 ) -> Labelling:
     """Name the neurons of ``test``. Without templates the built-in reference panel is used
-    (what Auto-label does). ``fixed`` maps row indices to names the user decided: they are kept
-    and their names are not given to anyone else."""
+    (what Auto-label does); with templates, they are joined by the built-in atlas's own answer
+    (unless ``use_atlas`` is False; see :meth:`Identifier.label`). ``fixed`` maps row indices to
+    names the user decided: they are kept and their names are not given to anyone else."""
     from .reference import load_panel
 
     identifier = identifier or default_identifier()
+    panel = load_panel()
     if not templates:
-        return identifier.label_panel(test, load_panel(), use_colour=use_colour, fixed=fixed)
+        return identifier.label_panel(test, panel, use_colour=use_colour, fixed=fixed)
     for t in templates:
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron")
-    return identifier.label(test, templates, use_colour=use_colour, fixed=fixed)
+    return identifier.label(test, templates, use_colour=use_colour, fixed=fixed, atlas=panel.atlas if use_atlas else None)

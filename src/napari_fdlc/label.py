@@ -62,10 +62,12 @@ def label_files(
     weights: str | None = None,
     chirality: str = "auto",
     shared_handedness: bool = False,
+    use_atlas: bool = True,
 ) -> list[Path]:
     """Label each test table and write one CSV per test. Returns the paths written.
     ``shared_handedness``: the panel names the tests in one handedness when they clearly agree
-    (:meth:`Identifier.label_panel_many`)."""
+    (:meth:`Identifier.label_panel_many`); ``use_atlas``: with templates, join the built-in
+    atlas's own answer (:func:`napari_fdlc.identify.label_neurons`)."""
     if top_k < 1:
         raise FdlcError(f"--top-k must be at least 1 (got {top_k})")
     if method not in ("fdlc", "cpd"):
@@ -87,7 +89,8 @@ def label_files(
 
         identifier = (Identifier.load(weights) if weights else default_identifier()).with_chirality(chirality)
         if template_tables or not shared_handedness:
-            results = [label_neurons(t, template_tables or None, use_colour, identifier=identifier) for t in test_tables]
+            results = [label_neurons(t, template_tables or None, use_colour, identifier=identifier, use_atlas=use_atlas)
+                       for t in test_tables]
         else:
             results = identifier.label_panel_many(test_tables, load_panel(), use_colour)
             batch = results[0].info.get("batch_handedness") or {}

@@ -41,7 +41,7 @@ import pandas as pd
 from .colour import IDENTITY_CHANNELS, normal_scores
 from .errors import ModelError, atomic_write
 from .geometry import canonical_frame
-from .register import Mixture, Placement, register
+from .register import Mixture, Placement, posterior, register
 from .table import NeuronTable
 
 ATLAS_NAME = "atlas.csv"
@@ -81,6 +81,13 @@ class Atlas:
     def register(self, test: NeuronTable, use_colour: bool = True, chiralities=(False, True)) -> list[Placement]:
         """``test`` placed in the atlas frame, once per chirality (see napari_fdlc.register.register)."""
         return register(test, self.mixture(), use_colour, chiralities=chiralities)
+
+    def posterior(self, test: NeuronTable, use_colour: bool = True, mirrored: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """``test`` placed in one handedness, then the probability (N, names) that each of its
+        neurons is each atlas name and (N,) that it is none, from positions (and colours)
+        alone: the atlas's own answer, without the model (see :func:`napari_fdlc.register.posterior`)."""
+        placement = self.register(test, use_colour, chiralities=(mirrored,))[0]
+        return posterior(test, self.mixture(), placement.xyz, use_colour)
 
     def to_frame(self) -> pd.DataFrame:
         df = pd.DataFrame({"name": self.names})

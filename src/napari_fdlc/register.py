@@ -102,31 +102,14 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         canon = canon * mixture.partial_view_scale
         shifts = shifts_of(canon)
     keep = keep if len(shifts) == 1 else 2 * keep
-    var = mixture.var
-    log_weight = mixture.log_weight - 0.5 * np.log(var).sum(axis=1)
-    colour_term = 0.0
-    if use_colour and mixture.colour is not None and all(c in test.colours for c in IDENTITY_CHANNELS):
-        scores = normal_scores(test, IDENTITY_CHANNELS)
-        cvar = mixture.colour_var + _COLOUR_VAR
-        colour_term = -0.5 * (((scores[:, None] - mixture.colour[None]) ** 2) / cvar[None]).sum(-1)
-        colour_term = colour_term - 0.5 * np.log(cvar).sum(axis=1)[None]
-
-    inv_var = 1.0 / var
-    constant = log_weight - 0.5 * (mixture.mean**2 * inv_var).sum(axis=1) + colour_term
     # The scores of every start are (starts, N, K) exponentials: single precision halves their
     # cost and changes a log-likelihood per neuron by ~1e-6.
     f32 = np.float32
-    weighted_mean, mean = (mixture.mean * inv_var).astype(f32), mixture.mean.astype(f32)
-    canon, inv_var, constant = canon.astype(f32), inv_var.astype(f32), np.asarray(constant, f32)
+    inv_var, weighted_mean, constant = (np.asarray(x, f32) for x in _component_terms(test, mixture, use_colour))
+    mean, canon = mixture.mean.astype(f32), canon.astype(f32)
 
-    def log_components(points):  # (..., N, K): log weight × density of each component at each point
-        # the Mahalanobis distance expanded into matrix products (10× faster than broadcasting)
-        return -0.5 * (points**2) @ inv_var.T + points @ weighted_mean.T + constant
-
-    def log_likelihood(comp):  # (..., N) per point, with a uniform outlier class (a neuron the
-        # reference lacks, a spurious detection)
-        top = np.maximum(comp.max(axis=-1), _OUTLIER_LOG_DENSITY)
-        return top + np.log(np.exp(comp - top[..., None]).sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - top))
+    def log_components(points):
+        return _log_components(points, inv_var, weighted_mean, constant)
 
     def responsibilities(comp):  # (..., N, K), the outlier class taking the rest
         return np.exp(comp - log_likelihood(comp)[..., None])
@@ -155,6 +138,42 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         k = own[np.argmax(scores[own])]
         placements.append(Placement(points[k], bool(m), float(scores[k])))
     return placements
+
+
+def posterior(test: NeuronTable, mixture: Mixture, placed: np.ndarray, use_colour: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """For ``test`` placed at ``placed`` (N, 3) in the mixture's frame (a :class:`Placement`):
+    the probability (N, K) that each neuron is each component, and (N,) that it is none (the
+    outlier class) — an answer from positions and colours alone, without the model."""
+    comp = _log_components(placed, *_component_terms(test, mixture, use_colour))
+    return np.exp(comp - log_likelihood(comp)[:, None]), np.exp(_OUTLIER_LOG_DENSITY - log_likelihood(comp))
+
+
+def _component_terms(test: NeuronTable, mixture: Mixture, use_colour: bool):
+    """What the log-density of each component at a point needs: 1 / variance (K, 3), mean /
+    variance (K, 3), and the rest (N, K or K): log weight, normalisation, the colour term."""
+    var = mixture.var
+    log_weight = mixture.log_weight - 0.5 * np.log(var).sum(axis=1)
+    colour_term = 0.0
+    if use_colour and mixture.colour is not None and all(c in test.colours for c in IDENTITY_CHANNELS):
+        scores = normal_scores(test, IDENTITY_CHANNELS)
+        cvar = mixture.colour_var + _COLOUR_VAR
+        colour_term = -0.5 * (((scores[:, None] - mixture.colour[None]) ** 2) / cvar[None]).sum(-1)
+        colour_term = colour_term - 0.5 * np.log(cvar).sum(axis=1)[None]
+    inv_var = 1.0 / var
+    return inv_var, mixture.mean * inv_var, log_weight - 0.5 * (mixture.mean**2 * inv_var).sum(axis=1) + colour_term
+
+
+def _log_components(points, inv_var, weighted_mean, constant):
+    """(..., N, K): log weight × density of each component at each point; the Mahalanobis
+    distance expanded into matrix products (10× faster than broadcasting)."""
+    return -0.5 * (points**2) @ inv_var.T + points @ weighted_mean.T + constant
+
+
+def log_likelihood(comp: np.ndarray) -> np.ndarray:
+    """(..., N) per point from its log components (..., N, K), with a uniform outlier class (a
+    neuron the reference lacks, a spurious detection)."""
+    top = np.maximum(comp.max(axis=-1), _OUTLIER_LOG_DENSITY)
+    return top + np.log(np.exp(comp - top[..., None]).sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - top))
 
 
 def partial_view_shifts(test_x: np.ndarray, reference_x: np.ndarray, min_scale: float, steps: int = 5) -> tuple[float, ...]:

@@ -269,11 +269,11 @@ def split_worms(worms: list[Worm], cfg: TrainConfig, rng) -> tuple[list[Worm], d
     return train, val
 
 
-def _pair_scores(identifier, pairs, use_colour: bool, scores: Scores | None = None) -> Scores:
-    """Each test named from its template, scored as ``fdlc evaluate`` scores pairs."""
+def _pair_scores(identifier, pairs, use_colour: bool, scores: Scores | None = None, atlas=None) -> Scores:
+    """Each test named from its template (and ``atlas``), scored as ``fdlc evaluate`` scores pairs."""
     scores = scores if scores is not None else Scores()
     for template, test in pairs:
-        scores.add(identifier.label(test, [template], use_colour=use_colour), test, set(template.names))
+        scores.add(identifier.label(test, [template], use_colour=use_colour, atlas=atlas), test, set(template.names))
     return scores
 
 
@@ -453,7 +453,8 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
     pairs of the *training* labs: the weight of leaving a neuron unnamed (top-1, position
     only), the colour fusion weight (top-1 with colour), then the temperature that minimises
     the expected calibration error of ``auto_conf``. With ``panel_tests`` (see _panel_tests),
-    the panel's temperature and chirality doubt (calibration error). The prior against a
+    the weights of the atlas's own answer beside a template (top-1, each lab's pairs with an
+    atlas built without it) and the panel's temperature and chirality doubt (calibration error). The prior against a
     mirrored placement is not fitted (identify.MIRROR_PRIOR)."""
     # Every setting fitted here acts after the registrations and the model's forward passes:
     # compute those once (instance attributes shadow the methods until the end).
@@ -485,17 +486,22 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
 def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict | None) -> dict:
     from .identify import MIRROR_PRIOR
 
+    # Each lab's pairs are joined by an atlas built without that lab (the panel tests' atlas),
+    # as a lab the atlas has never seen would be: its own worms in the atlas would flatter it.
+    atlases = {lab: panel.atlas for lab, (panel, _) in (panel_tests or {}).items()}
+
     def run(use_colour):  # every training lab's validation pairs, pooled
         scores = Scores()
-        for pairs in val_pairs.values():
-            _pair_scores(identifier, pairs, use_colour, scores)
+        for lab, pairs in val_pairs.items():
+            _pair_scores(identifier, pairs, use_colour, scores, atlases.get(lab))
         return scores
 
     settings = identifier.settings
     # Every fitted setting starts from its default, not from what the model's JSON holds, so
     # that calibrating twice gives the same settings (each choice below depends on the others).
     defaults = type(settings)()
-    for name in ("no_match_weight", "colour_weight", "temperature", "chirality_doubt", "panel_temperature"):
+    for name in ("no_match_weight", "colour_weight", "atlas_weight", "atlas_weight_position", "temperature",
+                 "chirality_doubt", "panel_temperature"):
         setattr(settings, name, getattr(defaults, name))
 
     def choose(name, values, score):
@@ -510,8 +516,11 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
     settings.mirror_penalty = MIRROR_PRIOR  # not fitted: why at identify.MIRROR_PRIOR
     choose("no_match_weight", (0.05, 0.2, 0.5, 1.0), lambda: run(False).summary()["top1"])
     choose("colour_weight", (0.0, 0.25, 0.5, 1.0), lambda: run(True).summary()["top1"])
+    if atlases:  # with a template, the weight of the atlas's own answer (top-1)
+        choose("atlas_weight_position", (0.0, 0.25, 0.5, 1.0, 2.0), lambda: run(False).summary()["top1"])
+        choose("atlas_weight", (0.0, 0.25, 0.5, 1.0, 2.0), lambda: run(True).summary()["top1"])
     # lowest expected calibration error, position only and with colour
-    choose("temperature", (0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.5, 2.0),
+    choose("temperature", (0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.5, 2.0, 3.0),
            lambda: -np.mean([run(c).summary()["ece"] for c in (False, True)]))
 
     def run_panel(use_colour):
