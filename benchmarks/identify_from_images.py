@@ -5,7 +5,8 @@ against another worm of its lab — and compare with naming the worm's true posi
 
 For each test worm: the renderer (napari_fdlc.render, realistic noise) makes the stack;
 segment_stack finds the nuclei and reads their colours; fdlc (with colour) names them against a
-labelled template (the next worm of the same lab). Detections are matched one-to-one to true
+labelled template (the next worm of the same lab) with the atlas's answer beside it, as ``fdlc
+label --template`` does (the atlas rebuilt without the test's lab). Detections are matched one-to-one to true
 neurons within 1.5 µm; accuracy counts named true neurons whose name the template has (a missed
 nucleus counts as wrong). The same test's true table (positions and rendered colours) named the
 same way gives the "true positions" figure. With ``--protocol panel`` the names come from the
@@ -66,7 +67,7 @@ def main(argv=None) -> int:
                 told = identifier.with_chirality("mirrored" if mirrored else "same")
             if args.protocol == "panel":
                 return told.label_panel(table, panel, use_colour=True)
-            return told.label(table, [template], use_colour=True)
+            return told.label(table, [template], use_colour=True, atlas=atlas)  # as fdlc label --template
         hit_img = n_img = hit_true = n_true = found_total = truth_total = 0
         seconds = []
         for k in range(min(args.worms_per_lab, len(tables) - 1)):
