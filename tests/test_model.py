@@ -109,8 +109,12 @@ def test_permuting_the_test_permutes_the_output(identifier, worm, other_worm):
 
 @pytest.mark.parametrize("n", [1, 2, 2000])
 def test_any_neuron_count(identifier, other_worm, n):
+    from napari_fdlc.reference import load_atlas
+
     rng = np.random.default_rng(n)
     test = NeuronTable(rng.normal(size=(n, 3)) * [40, 10, 8], {c: rng.random(n) for c in "RGB"})
+    joined = identifier.with_settings(atlas_weight=1.0).label(test, [other_worm], atlas=load_atlas())
+    assert len(joined.auto_id) == n and joined.info["atlas"]
     result = identifier.label(test, [other_worm])
     assert len(result.auto_id) == n
     assert np.all(result.probs.sum(1) <= 1 + 1e-6)

@@ -112,7 +112,7 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         return _log_components(points, inv_var, weighted_mean, constant)
 
     def responsibilities(comp):  # (..., N, K), the outlier class taking the rest
-        return np.exp(comp - log_likelihood(comp)[..., None])
+        return np.exp(comp - _log_likelihood(comp)[..., None])
 
     tried = np.isin(_START_MIRRORED, chiralities)
     mirrored = np.tile(_START_MIRRORED[tried], len(shifts))
@@ -120,7 +120,7 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     offsets = [turned + np.array([dx, 0.0, 0.0], f32) for dx in shifts]
     starts = np.concatenate(offsets)
     # one offset at a time: the (starts, N, K) scores of every offset at once would take 100+ MB
-    coarse = np.concatenate([log_likelihood(log_components(o)).sum(axis=-1) for o in offsets])
+    coarse = np.concatenate([_log_likelihood(log_components(o)).sum(axis=-1) for o in offsets])
     chosen = np.concatenate([np.flatnonzero(mirrored == m)[np.argsort(-coarse[mirrored == m])[:keep]] for m in chiralities])
     points = starts[chosen]  # EM from every kept start at once: (S, N, 3)
     for _ in range(iterations):
@@ -128,7 +128,7 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         weight = resp.sum(axis=-1)
         targets = (resp @ mean) / np.maximum(weight[..., None], 1e-12)
         points = _weighted_similarity(points, targets, weight, mixture.scale_range)
-    scores = log_likelihood(log_components(points)).mean(axis=-1, dtype=np.float64)
+    scores = _log_likelihood(log_components(points)).mean(axis=-1, dtype=np.float64)
     points = points.astype(np.float64)
     if every_start:
         return [Placement(p, bool(m), float(s)) for p, m, s in zip(points, mirrored[chosen], scores)]
@@ -145,7 +145,8 @@ def posterior(test: NeuronTable, mixture: Mixture, placed: np.ndarray, use_colou
     the probability (N, K) that each neuron is each component, and (N,) that it is none (the
     outlier class) — an answer from positions and colours alone, without the model."""
     comp = _log_components(placed, *_component_terms(test, mixture, use_colour))
-    return np.exp(comp - log_likelihood(comp)[:, None]), np.exp(_OUTLIER_LOG_DENSITY - log_likelihood(comp))
+    total = _log_likelihood(comp)
+    return np.exp(comp - total[:, None]), np.exp(_OUTLIER_LOG_DENSITY - total)
 
 
 def _component_terms(test: NeuronTable, mixture: Mixture, use_colour: bool):
@@ -169,7 +170,7 @@ def _log_components(points, inv_var, weighted_mean, constant):
     return -0.5 * (points**2) @ inv_var.T + points @ weighted_mean.T + constant
 
 
-def log_likelihood(comp: np.ndarray) -> np.ndarray:
+def _log_likelihood(comp: np.ndarray) -> np.ndarray:
     """(..., N) per point from its log components (..., N, K), with a uniform outlier class (a
     neuron the reference lacks, a spurious detection)."""
     top = np.maximum(comp.max(axis=-1), _OUTLIER_LOG_DENSITY)
