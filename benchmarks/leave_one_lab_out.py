@@ -111,7 +111,7 @@ def main(argv=None) -> int:
                      + (" --recalibrate" if args.recalibrate else "") + "` (see its docstring for the"
                      " exact commands; how to read it: benchmarks.md). Top-1 / top-3 %, each lab scored with the"
                      " fold model that never saw it: trained on the other four labs, checkpoint and inference"
-                     " settings chosen on those four only, the panel's atlas rebuilt without the lab"
+                     " settings chosen on those four only, the atlas (beside a template, and the panel's) rebuilt without the lab"
                      " (20 pairs within the lab; every worm of the lab against the panel). Published figures: WormND, panel"
                      " protocol with colour — fDLC trained without the lab, and the best published method"
                      " for the lab (CRF_ID retrained on the lab's own data).\n\n")
