@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.special import log_softmax
 
 from . import colour as colour_model
 from .errors import FdlcError, ModelError, warn
@@ -334,9 +335,7 @@ class Identifier:
         placement choice or the refinement weights."""
         if self.settings.temperature == 1.0:
             return log_p
-        lp = log_p / self.settings.temperature
-        top = lp.max(axis=1, keepdims=True)  # (np.logaddexp.reduce takes 5× longer)
-        return lp - top - np.log(np.exp(lp - top).sum(axis=1, keepdims=True))
+        return log_softmax(log_p / self.settings.temperature, axis=1)
 
     def _colour_evidence(self, template: NeuronTable, test: NeuronTable, model_saw_colour: bool) -> np.ndarray | None:
         """(N_test, M_template) weighted colour log-likelihood ratios, added to the positional
@@ -514,17 +513,14 @@ def _fuse_colour(log_p: np.ndarray, colour: np.ndarray | None) -> np.ndarray:
         return log_p
     fused = log_p.copy()
     fused[:, :-1] += colour
-    fused -= fused.max(axis=1, keepdims=True)
-    return fused - np.log(np.exp(fused).sum(axis=1, keepdims=True))
+    return log_softmax(fused, axis=1)
 
 
 def _times(probs: np.ndarray, answer: np.ndarray, weight: float) -> np.ndarray:
     """``probs`` (N, names; the rest of each row is "no match") times another ``answer`` (N,
     names + 1, the last column "none") raised to ``weight``, renormalised: a product of
     experts. The small floor keeps one expert from vetoing a name outright."""
-    full = np.hstack([probs, np.clip(1 - probs.sum(axis=1, keepdims=True), 0, None)])
-    full = full * (answer + 1e-4) ** weight
-    return (full / full.sum(axis=1, keepdims=True))[:, :-1]
+    return _renormalised(_with_no_match(probs) * (answer + 1e-4) ** weight)
 
 
 def _sharpen(probs: np.ndarray, temperature: float) -> np.ndarray:
@@ -533,8 +529,16 @@ def _sharpen(probs: np.ndarray, temperature: float) -> np.ndarray:
     under-confident; a temperature fitted on the training labs undoes it."""
     if temperature == 1.0:
         return probs
-    full = np.hstack([probs, np.clip(1 - probs.sum(axis=1, keepdims=True), 0, None)])
-    full = np.maximum(full, 1e-300) ** (1 / temperature)
+    return _renormalised(np.maximum(_with_no_match(probs), 1e-300) ** (1 / temperature))
+
+
+def _with_no_match(probs: np.ndarray) -> np.ndarray:
+    """(N, names) -> (N, names + 1): the rest of each row as an explicit "no match" column."""
+    return np.hstack([probs, np.clip(1 - probs.sum(axis=1, keepdims=True), 0, None)])
+
+
+def _renormalised(full: np.ndarray) -> np.ndarray:
+    """Rows of (N, names + 1) scaled to sum 1, then without the "no match" column."""
     return (full / full.sum(axis=1, keepdims=True))[:, :-1]
 
 
@@ -585,10 +589,10 @@ def label_neurons(
     from .reference import load_panel
 
     identifier = identifier or default_identifier()
-    panel = load_panel()
     if not templates:
-        return identifier.label_panel(test, panel, use_colour=use_colour, fixed=fixed)
+        return identifier.label_panel(test, load_panel(), use_colour=use_colour, fixed=fixed)
     for t in templates:
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron")
-    return identifier.label(test, templates, use_colour=use_colour, fixed=fixed, atlas=panel.atlas if use_atlas else None)
+    atlas = load_panel().atlas if use_atlas else None  # the panel is cached; its atlas with it
+    return identifier.label(test, templates, use_colour=use_colour, fixed=fixed, atlas=atlas)

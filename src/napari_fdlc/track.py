@@ -42,6 +42,7 @@ from typing import Callable
 
 import numpy as np
 import pandas as pd
+from scipy.special import log_softmax
 
 from .errors import FdlcError, TableError
 from .geometry import apply_affine, canonical_frame, fit_affine
@@ -284,8 +285,7 @@ def _fuse_position(log_p: np.ndarray, placed: np.ndarray, ref_xyz: np.ndarray, s
     llr = -d2 / (2 * sigma**2) - 1.5 * np.log(2 * np.pi * sigma**2) + np.log(volume)
     fused = log_p.copy()
     fused[:, :-1] += llr
-    fused -= fused.max(axis=1, keepdims=True)
-    return fused - np.log(np.exp(fused).sum(axis=1, keepdims=True))
+    return log_softmax(fused, axis=1)
 
 
 def _full_search(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings) -> list[tuple]:

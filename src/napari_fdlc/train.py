@@ -454,8 +454,8 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
     only), the colour fusion weight (top-1 with colour), then the temperature that minimises
     the expected calibration error of ``auto_conf``. With ``panel_tests`` (see _panel_tests),
     the weights of the atlas's own answer beside a template (top-1, each lab's pairs with an
-    atlas built without it) and the panel's temperature and chirality doubt (calibration error). The prior against a
-    mirrored placement is not fitted (identify.MIRROR_PRIOR)."""
+    atlas built without it) and the panel's temperature and chirality doubt (calibration
+    error). The prior against a mirrored placement is not fitted (identify.MIRROR_PRIOR)."""
     # Every setting fitted here acts after the registrations and the model's forward passes:
     # compute those once (instance attributes shadow the methods until the end).
     cache = {}
