@@ -19,8 +19,14 @@ volumes per second when many volumes are given at once. Configurations:
   included in the average;
 * fast mode: ``fdlc track --method geometry``, the warp chain alone (no model; accuracy in
   docs/tracking.md), one volume after the other, so latency and throughput are the same thing;
-* CPD: ``baselines.cpd_match`` (every orientation of ``geometry.ORIENTATIONS``) + the same
-  assignment and candidates.
+* CPD, identification: ``baselines.cpd_match`` (every orientation of ``geometry.ORIENTATIONS``,
+  as the orientation of a new worm is unknown) + the same assignment and candidates;
+* CPD, tracking: ``fdlc track --method cpd`` on the same sequence, one volume at a time: the
+  first volume searched in every orientation, each later one a single pycpd registration from
+  the volume before (what "a library CPD takes ~30 ms per pair" measures).
+
+Two ratio columns: every row against each CPD row, so that identification can be read against
+CPD with its orientation search and tracking against CPD's single registration.
 
 Peak memory: Python/numpy allocations (tracemalloc) during one run of each configuration, and
 the process's peak resident size at the end (``ru_maxrss``; includes torch itself). With CUDA,
@@ -66,6 +72,10 @@ def _rate(fn, volumes: int) -> float:
     t0 = time.perf_counter()
     fn()
     return volumes / (time.perf_counter() - t0)
+
+
+def _times(ratio: float) -> str:
+    return f"{ratio:.0f}×" if ratio >= 10 else f"{ratio:.1f}×"
 
 
 def _peak_mb(fn) -> float:
@@ -189,27 +199,37 @@ def main(argv=None) -> int:
     print(f"  Auto-label on the sample: segmentation {segment_ms:.0f} ms, naming {sample_ms:.0f} ms", file=sys.stderr, flush=True)
 
     wall, cpu = _median_ms(cpd_one, args.cpd_repeats)
-    cpd_name = f"CPD (pycpd, {len(ORIENTATIONS)} orientations)"
+    cpd_name = f"CPD identification (pycpd, {len(ORIENTATIONS)} orientations)"
     rows[cpd_name] = {"cpu_ms": wall, "cpu_cpu_ms": cpu, "cpu_rate": 1000.0 / wall, "peak_mb": _peak_mb(cpd_one)}
     print(f"  cpu CPD: {wall:.1f} ms/volume", file=sys.stderr, flush=True)
 
-    cpd_ms = rows[cpd_name]["cpu_ms"]
+    def cpd_track():
+        track(sequence, method="cpd")
+
+    wall, cpu = _median_ms(cpd_track, max(1, args.cpd_repeats // 2))
+    wall, cpu = wall / len(sequence), cpu / len(sequence)
+    cpd_track_name = "CPD tracking (pycpd, one registration per volume from the one before)"
+    rows[cpd_track_name] = {"cpu_ms": wall, "cpu_cpu_ms": cpu, "cpu_rate": 1000.0 / wall, "peak_mb": _peak_mb(cpd_track)}
+    print(f"  cpu CPD tracking: {wall:.1f} ms/volume", file=sys.stderr, flush=True)
+
+    cpd_ms, cpd_track_ms = rows[cpd_name]["cpu_ms"], rows[cpd_track_name]["cpu_ms"]
     load = os.getloadavg()
     print(f"# speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__}, "
           f"{args.threads} torch thread(s), OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}; weights {weights or 'shipped'}")
     print(f"test volume: {len(test)} neurons; template {len(template)} neurons; panel {len(panel.templates)} templates; "
           f"batched over {args.batch} volumes (panel: 16); load average before the run {load[0]:.1f}")
     print()
-    head = "| configuration | latency, ms/volume (CPU ms) | batched, volumes/s | CPD ÷ fdlc latency | peak Python memory, MB |"
-    sep = "|---|---|---|---|---|"
+    head = ("| configuration | latency, ms/volume (CPU ms) | batched, volumes/s | CPD identification ÷ latency "
+            "| CPD tracking ÷ latency | peak Python memory, MB |")
+    sep = "|---|---|---|---|---|---|"
     if "cuda" in devices:
         head = head[:-1] + " GPU latency, ms | GPU batched, volumes/s |"
         sep += "---|---|"
     print(head)
     print(sep)
     for name, r in rows.items():
-        ratio = "1" if name.startswith("CPD") else f"{cpd_ms / r['cpu_ms']:.0f}×"
-        line = f"| {name} | {r['cpu_ms']:.1f} ({r['cpu_cpu_ms']:.1f}) | {r['cpu_rate']:.0f} | {ratio} | {r['peak_mb']:.1f} |"
+        ratios = " | ".join(_times(ms / r["cpu_ms"]) for ms in (cpd_ms, cpd_track_ms))
+        line = f"| {name} | {r['cpu_ms']:.1f} ({r['cpu_cpu_ms']:.1f}) | {r['cpu_rate']:.0f} | {ratios} | {r['peak_mb']:.1f} |"
         if "cuda" in devices:
             line += f" {r['cuda_ms']:.1f} | {r['cuda_rate']:.0f} |" if "cuda_ms" in r else " – | – |"
         print(line)

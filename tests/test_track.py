@@ -64,6 +64,20 @@ def test_moved_copies_track_near_perfectly_with_untrained_model(identifier, gent
     assert all(((c >= 0) & (c <= 1)).all() for c in result.confidence)
 
 
+def test_cpd_tracker_follows_from_the_volume_before(gentle, monkeypatch):
+    """The CPD baseline searches orientations on the first volume only, then registers once
+    per volume from the one before, and still tracks a gentle sequence."""
+    from napari_fdlc import baselines
+
+    volumes, origins = gentle
+    calls = []
+    follow = baselines.cpd_follow
+    monkeypatch.setattr(baselines, "cpd_follow", lambda *a, **k: calls.append(1) or follow(*a, **k))
+    result = track(volumes, method="cpd")
+    assert len(calls) == len(volumes) - 1
+    assert tracking_accuracy(result, origins, origins[0])["accuracy"] >= 0.9
+
+
 def test_shuffled_exact_copies_are_tracked_exactly(identifier, worm):
     rng = np.random.default_rng(0)
     volumes, perms = [], []

@@ -5,6 +5,7 @@
   colour), the flip of lowest cost wins.
 * :func:`cpd_match` — Coherent Point Drift (pycpd): the template is deformed onto the test
   non-rigidly, for each orientation; the orientation with the best CPD fit wins.
+  :func:`cpd_follow` is the tracking form: one registration from the volume before.
 
 Both return probabilities (N_test, M_template + 1) like :meth:`Identifier.match_pair`, so the
 same assignment code turns them into names.
@@ -56,29 +57,59 @@ def floor_match(template: NeuronTable, test: NeuronTable, use_colour: bool = Fal
     return _one_hot(len(b), len(a), best[1], best[2])
 
 
-def cpd_match(template: NeuronTable, test: NeuronTable, use_colour: bool = False, max_iterations: int = 50) -> np.ndarray:
-    """Non-rigid CPD from the template onto the test in each of the 16 orientations; the one
-    with the smallest mean distance to its nearest neighbour wins; Hungarian on distances."""
-    from pycpd import DeformableRegistration
+def cpd_match(template: NeuronTable, test: NeuronTable, use_colour: bool = False, max_iterations: int = 50,
+              orientations: np.ndarray = ORIENTATIONS) -> np.ndarray:
+    """Non-rigid CPD from the template onto the test in each of ``orientations`` (default all
+    16); the one with the smallest mean distance to its nearest neighbour wins. Probabilities
+    (N_test, M_template + 1). Position only: ``use_colour`` is accepted for the shared signature."""
+    return cpd_search(template, test, max_iterations, orientations)[0]
 
+
+def cpd_search(template: NeuronTable, test: NeuronTable, max_iterations: int = 50,
+               orientations: np.ndarray = ORIENTATIONS) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`cpd_match`, also returning the deformed template in the test's own µm (where a CPD
+    tracker starts the next volume from)."""
     a, _, _ = canonical_frame(template.xyz)
-    b, _, _ = canonical_frame(test.xyz)
-    scale = _rms(a)
-    a = a / scale
-    b = b * (1.0 / _rms(b))
+    b, centre, rotation = canonical_frame(test.xyz)
+    a = a / _rms(a)
+    b_scale = _rms(b)
+    b = b / b_scale
     best = None
-    for orientation in ORIENTATIONS:
+    for orientation in orientations:
         bo = b @ orientation.T
-        reg = DeformableRegistration(X=bo, Y=a, alpha=2.0, beta=2.0, w=0.1, max_iterations=max_iterations)
-        moved, _ = reg.register()
+        moved, sigma2 = _cpd(bo, a, max_iterations)
         d = cdist(bo, moved, "sqeuclidean")
         fit = np.sqrt(d.min(axis=1)).mean()
         if best is None or fit < best[0]:
-            best = (fit, d, reg.sigma2)
-    _, d, sigma2 = best
-    # Soft probabilities from CPD's own Gaussian width; "no match" takes CPD's outlier weight.
+            best = (fit, d, sigma2, moved @ orientation)
+    _, d, sigma2, moved = best
+    return _cpd_probs(d, sigma2), (moved * b_scale) @ rotation + centre
+
+
+def cpd_follow(previous: np.ndarray, test: NeuronTable, max_iterations: int = 50) -> tuple[np.ndarray, np.ndarray]:
+    """One CPD registration of ``previous`` (a deformed reference, µm, from the volume before)
+    onto the next volume of the same recording: no orientation search, as a CPD tracker does.
+    Returns the probabilities and the newly deformed reference (µm) for the volume after."""
+    x = np.asarray(test.xyz, float)
+    centre = x.mean(axis=0)
+    scale = _rms(x - centre)
+    moved, sigma2 = _cpd((x - centre) / scale, (previous - centre) / scale, max_iterations)
+    return _cpd_probs(cdist((x - centre) / scale, moved, "sqeuclidean"), sigma2), moved * scale + centre
+
+
+def _cpd(x: np.ndarray, y: np.ndarray, max_iterations: int) -> tuple[np.ndarray, float]:
+    """pycpd's non-rigid registration of ``y`` onto ``x`` (both scaled to unit RMS radius)."""
+    from pycpd import DeformableRegistration
+
+    reg = DeformableRegistration(X=x, Y=y, alpha=2.0, beta=2.0, w=0.1, max_iterations=max_iterations)
+    moved, _ = reg.register()
+    return moved, reg.sigma2
+
+
+def _cpd_probs(d: np.ndarray, sigma2: float) -> np.ndarray:
+    """Soft probabilities from CPD's own Gaussian width; "no match" takes CPD's outlier weight."""
     logits = -d / (2 * max(sigma2, 1e-6))
-    logits = np.hstack([logits, np.full((len(b), 1), np.log(0.1) + logits.max(axis=1, keepdims=True) - 4.0)])
+    logits = np.hstack([logits, np.full((len(d), 1), np.log(0.1) + logits.max(axis=1, keepdims=True) - 4.0)])
     logits -= logits.max(axis=1, keepdims=True)
     probs = np.exp(logits)
     probs /= probs.sum(axis=1, keepdims=True)

@@ -25,8 +25,9 @@ volume by the warp fitted on its own answer. With ``placement="model"`` the warp
 model's answer for the last volume of the chunk before instead (no geometric chain).
 
 ``search="full"`` runs the full search (what ``fdlc label`` does) on every volume instead.
-For comparison, ``method="cpd"`` tracks with the classical CPD baseline (each volume to the
-reference) and ``method="geometry"`` with the geometric chain alone (no model: an ablation).
+For comparison, ``method="cpd"`` tracks with the classical CPD baseline (the first volume
+searched in every orientation, then each volume registered from the one before) and
+``method="geometry"`` with the geometric chain alone (no model: an ablation).
 
 :func:`simulate_sequence` makes synthetic sequences with known tracks: the worm's pose (bend,
 roll, rotation and position in XY, scale) changes smoothly over time, and each volume gets its own
@@ -503,14 +504,17 @@ def _assign_ids(probs: np.ndarray, no_match_weight: float) -> tuple[np.ndarray, 
 
 
 def _track_cpd(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, progress) -> TrackResult:
-    """The classical baseline: every volume to the first reference with CPD (every orientation)."""
-    from .baselines import cpd_match
+    """The classical baseline, as a CPD tracker works: the first volume gets CPD from the first
+    reference in every orientation; each later volume one registration of the reference as
+    deformed onto the volume before (the worm moves little between volumes)."""
+    from .baselines import cpd_follow, cpd_search
 
     ref = tables[0]
     names = list(ref.labels)
     result = TrackResult([], [], names, [], list(seq.times), list(seq.sources))
+    moved = None
     for k, vol in enumerate(seq.volumes):
-        probs = cpd_match(ref, vol)
+        probs, moved = cpd_search(ref, vol) if moved is None else cpd_follow(moved, vol)
         tid, conf = _assign_ids(probs[:, :-1], s.no_match_weight)
         result.track_id.append(tid)
         result.confidence.append(conf)
