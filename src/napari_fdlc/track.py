@@ -43,7 +43,6 @@ from typing import Callable
 
 import numpy as np
 import pandas as pd
-from scipy.special import log_softmax
 
 from .errors import FdlcError, TableError
 from .geometry import apply_affine, canonical_frame, fit_affine
@@ -256,16 +255,20 @@ def _match_rate(log_p: np.ndarray) -> float:
 def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: TrackSettings, fit: bool = True) -> dict:
     """Calibrated, colour-fused log p, its one-to-one assignment onto the reference's neurons,
     and (``fit``) the warp that carries this volume onto the reference, fitted on the assignment."""
-    from .identify import _fuse_colour
+    from .identify import _add_evidence
 
     lp, placed = out
     rate = _match_rate(lp)
     lp = identifier._calibrate(lp)
+    evidence = []  # log likelihood ratios on the real columns, added before one renormalisation
     if s.use_colour:
         saw = identifier._takes_colour([ref.table, volume], s.use_colour)
-        lp = _fuse_colour(lp, identifier._colour_evidence(ref.table, volume, model_saw_colour=saw))
+        evidence.append(identifier._colour_evidence(ref.table, volume, model_saw_colour=saw))
     if s.position_sigma_um > 0:
-        lp = _fuse_position(lp, placed, ref.xyz, s.position_sigma_um)
+        evidence.append(_position_evidence(placed, ref.xyz, s.position_sigma_um))
+    evidence = [e for e in evidence if e is not None]
+    if evidence:
+        lp = _add_evidence(lp, sum(evidence))
     p = np.exp(lp[:, :-1])
     choice = assign(p, None, s.no_match_weight)
     matched = choice >= 0
@@ -276,17 +279,14 @@ def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: Tra
     return {"log_p": lp, "choice": choice, "warp": warp, "rate": rate}
 
 
-def _fuse_position(log_p: np.ndarray, placed: np.ndarray, ref_xyz: np.ndarray, sigma: float) -> np.ndarray:
-    """Within one worm a neuron stays where the warp puts it, up to segmentation jitter: add the
-    log likelihood ratio of a Gaussian displacement (width ``sigma`` µm) against a partner
-    anywhere in the worm, to the real columns ("no match" keeps ratio 1), and renormalise.
-    The model was trained across worms, where partners lie much further apart."""
+def _position_evidence(placed: np.ndarray, ref_xyz: np.ndarray, sigma: float) -> np.ndarray:
+    """Within one worm a neuron stays where the warp puts it, up to segmentation jitter: the log
+    likelihood ratio (N, M) of a Gaussian displacement (width ``sigma`` µm) against a partner
+    anywhere in the worm, for the real columns ("no match" keeps ratio 1). The model was
+    trained across worms, where partners lie much further apart."""
     d2 = _sqdist(placed, ref_xyz)
     volume = float(np.prod(np.ptp(ref_xyz, axis=0) + 2 * sigma))
-    llr = -d2 / (2 * sigma**2) - 1.5 * np.log(2 * np.pi * sigma**2) + np.log(volume)
-    fused = log_p.copy()
-    fused[:, :-1] += llr
-    return log_softmax(fused, axis=1)
+    return -d2 / (2 * sigma**2) - 1.5 * np.log(2 * np.pi * sigma**2) + np.log(volume)
 
 
 def _full_search(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings) -> list[tuple]:
