@@ -151,6 +151,32 @@ def test_measure_colours_background_and_gfp():
     assert values["W"][0] == 0.0  # one neuron: z-score 0
 
 
+def test_w_bleed_slopes_find_the_pan_neuronal_share():
+    """Most neurons lack a colour: the lower envelope of R against W is the bleed (0.1 here),
+    whatever the on-neurons do; B is never unmixed; too few neurons estimate nothing."""
+    from napari_fdlc.segment import w_bleed_slopes
+
+    rng = np.random.default_rng(0)
+    w = 300 * rng.lognormal(0.0, 0.35, 200)
+    on = rng.random(200) < 0.4
+    r = np.where(on, rng.uniform(100, 300, 200), rng.uniform(5, 20, 200)) + 0.1 * w
+    g = np.where(rng.random(200) < 0.5, rng.uniform(100, 300, 200), rng.uniform(5, 20, 200))
+    slopes = w_bleed_slopes({"W": w, "R": r, "G": g, "B": r})
+    assert slopes["R"] == pytest.approx(0.1, abs=0.02)
+    assert slopes["G"] < 0.02
+    assert "B" not in slopes
+    assert w_bleed_slopes({"W": w[:10], "R": r[:10]}) == {"R": 0.0}
+
+
+def test_unmixed_colours_follow_the_rendered_colours_better(rendered):
+    stack, truth = rendered
+    rho = {}
+    for unmix in (False, True):
+        values = measure_colours(stack, truth.xyz, radius_um=0.9, unmix=unmix)
+        rho[unmix] = spearmanr(values["R"], truth.extra["R_int"])[0]
+    assert rho[True] > rho[False] + 0.01, rho
+
+
 def test_bad_diameter():
     with pytest.raises(FdlcError):
         detect_nuclei(np.zeros((4, 8, 8)), (1, 1, 1), diameter_um=0)

@@ -25,8 +25,11 @@ scaled to its own range) when no channel is marked W:
 
 Colours are read at each centre in a small ellipsoid (radius in µm): the 75th percentile of the
 voxels there (robust to a neighbour's edge and to the nucleus being smaller than the ellipsoid),
-minus the local background (20th percentile of a shell around it), then z-scored per channel
-across the volume, as NeuroPAL_ID does.
+minus the local background (20th percentile of a shell around it). The pan-neuronal marker
+bleeds into the colour channels (TagRFP-T into the mNeptune and CyOFP channels): its share is
+estimated from the volume itself, as the slope of the lower envelope of each colour against W
+(most neurons lack any one colour, so their readout there is floor plus bleed), and removed
+from R and G — :func:`w_bleed_slopes`. Then each channel is z-scored across the volume, as NeuroPAL_ID does.
 
 Everything is vectorised with scipy.ndimage / numpy; see ``docs/segmentation.md`` for accuracy
 and speed.
@@ -270,13 +273,15 @@ def measure_colours(
     radius_um: float = 0.9,
     background: bool = True,
     zscore: bool = True,
+    unmix: bool = True,
 ) -> dict[str, np.ndarray]:
     """Per-neuron intensity of each channel with a role, keyed by role.
 
     The 75th percentile in an ellipsoid of ``radius_um`` around each centre, minus the 20th
     percentile of a shell from 2 to 3 ``radius_um`` (local background: haze, gut, bleed from
-    neighbours averaged out). R, G, B, W are z-scored per volume (``zscore``); GFP stays in
-    background-subtracted counts, which is what activity readouts need.
+    neighbours averaged out). With ``unmix`` (and a W channel), W's bleed-through is removed
+    from R and G (:func:`w_bleed_slopes`). R, G, B, W are z-scored per volume (``zscore``);
+    GFP stays in background-subtracted counts, which is what activity readouts need.
     """
     xyz_um = np.asarray(xyz_um, dtype=float).reshape(-1, 3)
     vox = np.asarray(stack.voxel_size_zyx, dtype=float)
@@ -291,12 +296,45 @@ def measure_colours(
         value = _sample(ch, centres, inner, 75)
         if background:
             value = value - _sample(ch, centres, shell, 20)
-        value = value.astype(np.float64)
-        if zscore and role != "GFP":
-            sd = value.std()
-            value = (value - value.mean()) / sd if sd > 0 else np.zeros_like(value)
-        out[role] = value
+        out[role] = value.astype(np.float64)
+    if unmix and "W" in out:
+        for role, slope in w_bleed_slopes(out).items():
+            out[role] = out[role] - slope * out["W"]
+    if zscore:
+        for role, value in out.items():
+            if role != "GFP":
+                sd = value.std()
+                out[role] = (value - value.mean()) / sd if sd > 0 else np.zeros_like(value)
     return out
+
+
+def w_bleed_slopes(raw: dict[str, np.ndarray], quantile: float = 0.1, min_neurons: int = 20) -> dict[str, float]:
+    """How much of W (the pan-neuronal marker) R and G picked up, from one volume's
+    background-subtracted readouts: the slope in [0, 1] of the ``quantile`` regression of the
+    colour on W (a lower envelope). A NeuroPAL colour is off in most neurons, so their readout
+    is a floor plus the bleed, proportional to W; a least-squares fit through all neurons would
+    also remove real colour that happens to go with W. The pinball loss is convex in the slope
+    (the intercept at each slope is a quantile), so a bounded scalar search finds it. Without
+    ``min_neurons`` neurons, nothing is estimated (slope 0)."""
+    from scipy.optimize import minimize_scalar
+
+    w = raw["W"]
+    slopes = {}
+    # mTagBFP2 is excited at 405 nm, where TagRFP-T is not: its channel gets no W to remove
+    # (estimating one there only took real blue that goes with W, measured on rendered stacks).
+    for role in ("R", "G"):
+        if role not in raw:
+            continue
+        colour = raw[role]
+
+        def pinball(slope):
+            residual = colour - slope * w
+            residual = residual - np.quantile(residual, quantile)
+            return float(np.sum(np.maximum(quantile * residual, (quantile - 1.0) * residual)))
+
+        usable = len(w) >= min_neurons and np.ptp(w) > 0
+        slopes[role] = float(minimize_scalar(pinball, bounds=(0.0, 1.0), method="bounded").x) if usable else 0.0
+    return slopes
 
 
 def segment_stack(
