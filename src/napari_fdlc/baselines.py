@@ -57,16 +57,14 @@ def floor_match(template: NeuronTable, test: NeuronTable, use_colour: bool = Fal
     return _one_hot(len(b), len(a), best[1], best[2])
 
 
-def cpd_match(template: NeuronTable, test: NeuronTable, use_colour: bool = False, max_iterations: int = 50,
-              orientations: np.ndarray = ORIENTATIONS) -> np.ndarray:
-    """Non-rigid CPD from the template onto the test in each of ``orientations`` (default all
-    16); the one with the smallest mean distance to its nearest neighbour wins. Probabilities
-    (N_test, M_template + 1). Position only: ``use_colour`` is accepted for the shared signature."""
-    return cpd_search(template, test, max_iterations, orientations)[0]
+def cpd_match(template: NeuronTable, test: NeuronTable, use_colour: bool = False, max_iterations: int = 50) -> np.ndarray:
+    """Non-rigid CPD from the template onto the test in each of the 16 orientations; the one
+    with the smallest mean distance to its nearest neighbour wins. Probabilities (N_test,
+    M_template + 1). Position only: ``use_colour`` is accepted for the shared signature."""
+    return cpd_search(template, test, max_iterations)[0]
 
 
-def cpd_search(template: NeuronTable, test: NeuronTable, max_iterations: int = 50,
-               orientations: np.ndarray = ORIENTATIONS) -> tuple[np.ndarray, np.ndarray]:
+def cpd_search(template: NeuronTable, test: NeuronTable, max_iterations: int = 50) -> tuple[np.ndarray, np.ndarray]:
     """:func:`cpd_match`, also returning the deformed template in the test's own µm (where a CPD
     tracker starts the next volume from)."""
     a, _, _ = canonical_frame(template.xyz)
@@ -75,7 +73,7 @@ def cpd_search(template: NeuronTable, test: NeuronTable, max_iterations: int = 5
     b_scale = _rms(b)
     b = b / b_scale
     best = None
-    for orientation in orientations:
+    for orientation in ORIENTATIONS:
         bo = b @ orientation.T
         moved, sigma2 = _cpd(bo, a, max_iterations)
         d = cdist(bo, moved, "sqeuclidean")

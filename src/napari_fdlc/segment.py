@@ -29,7 +29,8 @@ minus the local background (20th percentile of a shell around it). The pan-neuro
 bleeds into the colour channels (TagRFP-T into the mNeptune and CyOFP channels): its share is
 estimated from the volume itself, as the slope of the lower envelope of each colour against W
 (most neurons lack any one colour, so their readout there is floor plus bleed), and removed
-from R and G — :func:`w_bleed_slopes`. Then each channel is z-scored across the volume, as NeuroPAL_ID does.
+from R and G (:func:`w_bleed_slopes`). Then each channel is z-scored across the volume, as
+NeuroPAL_ID does.
 
 Everything is vectorised with scipy.ndimage / numpy; see ``docs/segmentation.md`` for accuracy
 and speed.

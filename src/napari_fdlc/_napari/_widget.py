@@ -982,11 +982,7 @@ class AutoLabelWidget(QWidget):
             try:
                 from ..segment import measure_colours
 
-                raw = measure_colours(stack, xyz, zscore=False)
-                measured = {}
-                for c, v in raw.items():
-                    sd = v.std()
-                    measured[c] = (v - v.mean()) / sd if sd > 0 else np.zeros_like(v)
+                measured = measure_colours(stack, xyz)  # z-scored per volume, as the table's
             except (FdlcError, ValueError, IndexError):  # colours are a bonus: fall back to the median
                 measured = None
         for c, col in colours.items():
