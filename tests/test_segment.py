@@ -220,6 +220,13 @@ def test_cli_segment_writes_a_table(tmp_path, rendered, capsys):
     assert score_detections(truth.xyz, table.xyz)["f1"] >= 0.9
     assert set(table.colours) == {"R", "G", "B", "W"}
     assert "nuclei" in capsys.readouterr().err
+    # --no-unmix keeps W's bleed-through: same nuclei, same B and W, other R and G.
+    raw = tmp_path / "raw.csv"
+    assert main(["segment", str(path), "--no-unmix", "--quiet", "--out", str(raw)]) == 0
+    kept = read_table(raw)
+    np.testing.assert_allclose(kept.xyz, table.xyz)
+    np.testing.assert_allclose(kept.colours["B"], table.colours["B"])
+    assert not np.allclose(kept.colours["R"], table.colours["R"])
     # Roles and voxel size from the command line win over the file.
     assert main(["segment", str(path), "--voxel-size", "2", "0.5", "0.5", "--channels", "-", "-", "B", "W",
                  "--diameter-um", "3", "--quiet", "--out", str(out)]) == 0

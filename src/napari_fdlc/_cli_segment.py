@@ -28,6 +28,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--threshold", type=float, default=6.0,
         help="minimum detection strength in noise SDs (default 6; lower finds dimmer nuclei)",
     )
+    parser.add_argument(
+        "--no-unmix", action="store_true",
+        help="keep the W (TagRFP-T) bleed-through in R and G (for stacks already unmixed)",
+    )
     parser.add_argument("--out", required=True, help="output neuron table (CSV)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
@@ -50,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"fdlc segment: {100 * fraction:3.0f}% {message} ({time.monotonic() - start:.1f} s)",
                       file=sys.stderr, flush=True)
 
-        table = segment_stack(stack, diameter_um=args.diameter_um, threshold=args.threshold, progress=progress)
+        table = segment_stack(stack, diameter_um=args.diameter_um, threshold=args.threshold, progress=progress,
+                              unmix=not args.no_unmix)
         if len(table) == 0:
             raise FdlcError(
                 f"{args.stack}: no nuclei found; check --voxel-size and --diameter-um, or lower --threshold"

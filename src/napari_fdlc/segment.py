@@ -344,6 +344,7 @@ def segment_stack(
     progress: Progress | None = None,
     threshold: float = 6.0,
     min_relative: float = 0.08,
+    unmix: bool = True,
 ) -> NeuronTable:
     """Detect nuclei and read their colours: a neuron table in the stack's frame (µm).
 
@@ -351,6 +352,7 @@ def segment_stack(
     and extra columns ``GFP`` (background-subtracted counts, when there is a GFP channel),
     ``x_px, y_px, z_px`` (0-based voxel coordinates, as napari shows them) and ``score``
     (detection strength in noise SDs). ``progress(fraction, message)`` is called along the way.
+    ``unmix``: remove W's bleed-through from R and G (see :func:`measure_colours`).
     """
     if stack.role_index("W") is None:
         warn(
@@ -365,7 +367,7 @@ def segment_stack(
     )
     _report(progress, 0.85, "reading colours")
     xyz = zyx[:, ::-1]
-    colours = measure_colours(stack, xyz, radius_um=0.3 * diameter_um)
+    colours = measure_colours(stack, xyz, radius_um=0.3 * diameter_um, unmix=unmix)
     gfp = colours.pop("GFP", None)
     vox = np.asarray(stack.voxel_size_zyx)
     extra = pd.DataFrame({"x_px": zyx[:, 2] / vox[2], "y_px": zyx[:, 1] / vox[1], "z_px": zyx[:, 0] / vox[0], "score": score})
