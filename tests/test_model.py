@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from napari_fdlc.errors import ModelError
-from napari_fdlc.identify import Identifier, InferenceSettings
+from napari_fdlc.identify import Identifier
 from napari_fdlc.model import CorrespondenceModel, load_model, matching_loss, save_model
 from napari_fdlc.table import NeuronTable
 
