@@ -128,11 +128,38 @@ def test_any_neuron_count_against_the_panel(identifier, n):
 
     rng = np.random.default_rng(n)
     test = NeuronTable(rng.normal(size=(n, 3)) * [40, 10, 8], {c: rng.random(n) for c in "RGB"})
-    result = identifier.label_panel(test, load_panel())  # 10 templates × 2 placements, one batch
+    result = identifier.label_panel(test, load_panel())
     assert len(result.auto_id) == n
     assert np.all(result.probs.sum(1) <= 1 + 1e-6)
     named = [x for x in result.auto_id if x]
     assert len(named) == len(set(named))
+
+
+def test_panel_chooses_the_handedness_on_its_first_templates(identifier, worm, monkeypatch):
+    """The first PANEL_HANDEDNESS_TEMPLATES templates see both placements and decide; the others
+    run once, in the chosen one; with the handedness set, every template runs once. The answer
+    equals averaging every template's answer for the chosen placement."""
+    from napari_fdlc import identify
+    from napari_fdlc.reference import load_panel
+
+    panel = load_panel()
+    k = identify.PANEL_HANDEDNESS_TEMPLATES
+    calls = []
+    grid = identify.Identifier._forward_grid
+
+    def counting(self, templates, tests, *rest):
+        calls.append((len(templates), len(tests)))
+        return grid(self, templates, tests, *rest)
+
+    monkeypatch.setattr(identify.Identifier, "_forward_grid", counting)
+    auto = identifier.label_panel(worm, panel, use_colour=False)
+    assert calls == [(k, 2), (len(panel.templates) - k, 1)]
+    calls.clear()
+    told = identifier.with_chirality("mirrored" if auto.info["mirrored"] else "same")
+    same = told.label_panel(worm, panel, use_colour=False)
+    assert calls == [(len(panel.templates), 1)]
+    assert list(same.auto_id) == list(auto.auto_id)
+    np.testing.assert_allclose(same.probs, auto.probs, atol=1e-6)
 
 
 def test_weights_round_trip_and_refusals(tmp_path):
