@@ -11,7 +11,8 @@ volumes per second when many volumes are given at once. Configurations:
   registration of the test onto the shipped atlas) multiplied in: what ``fdlc label --template
   T`` does, i.e. the configuration of the accuracy figures;
 * full, panel: the built-in reference panel, what Auto-label does: the test placed in the atlas
-  frame (registration, both chiralities), then 10 templates × 2 chiralities through the model;
+  frame (registration, both chiralities), 5 templates × 2 chiralities through the model to
+  choose the handedness, the other 5 templates in the chosen one (15 passes);
   "handedness set": the same with ``--chirality same`` (one chirality, 10 passes);
 * track: ``fdlc track`` defaults (full search, as above, on the first volume only; every later volume placed
   by the warp of the one before, one model pass, assignment); latency = one volume at a time
