@@ -12,6 +12,8 @@ Only R, G, B carry identity (W, the pan-neuronal marker, is in every neuron).
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from scipy.special import ndtri
 
@@ -25,12 +27,24 @@ def shared_channels(a: NeuronTable, b: NeuronTable) -> tuple[str, ...]:
 
 
 def normal_scores(table: NeuronTable, channels: tuple[str, ...]) -> np.ndarray:
-    """(N, C) per-volume normal scores of the chosen channels (ties share a rank)."""
-    values = table.colour_matrix(channels)
-    n = len(values)
-    if n == 0 or not channels:
-        return np.zeros((n, len(channels)))
-    return ndtri((_average_ranks(values) - 0.5) / n)
+    """(N, C) per-volume normal scores of the chosen channels (ties share a rank). Read-only:
+    the answer is remembered by the colours' content, as the same tables are scored again and
+    again (a panel's 10 templates and the test, each twice per call; a tracked reference once
+    per volume)."""
+    values = np.ascontiguousarray(table.colour_matrix(channels))
+    return _normal_scores(values.tobytes(), values.dtype.str, values.shape)
+
+
+@lru_cache(maxsize=64)
+def _normal_scores(raw: bytes, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
+    values = np.frombuffer(raw, dtype=dtype).reshape(shape)
+    n = shape[0]
+    if n == 0 or shape[1] == 0:
+        scores = np.zeros(shape)
+    else:
+        scores = ndtri((_average_ranks(values) - 0.5) / n)
+    scores.setflags(write=False)
+    return scores
 
 
 def _average_ranks(values: np.ndarray) -> np.ndarray:
