@@ -87,22 +87,6 @@ def _peak_mb(fn) -> float:
     return peak / 2**20
 
 
-def _label_many(identifier, tests, template, atlas, use_colour=True):
-    """Identifier.label(test, [template], atlas=atlas) for many tests, the template's matches
-    batched over the tests (the atlas's answer is one registration per test)."""
-    from napari_fdlc.match import make_labelling, name_probabilities
-
-    out = []
-    for test, (probs, info) in zip(tests, identifier.match_many(template, tests, use_colour)):
-        names, p = name_probabilities([(probs[:, :-1], template.labels)])
-        assign = name_probabilities([(info["assign_probs"][:, :-1], template.labels)])[1]
-        p, assign, _ = identifier._join_atlas(test, template, info["mirrored"], names, p, assign, use_colour, atlas)
-        lab = make_labelling(names, p, None, {}, identifier.settings.no_match_weight, assign_probs=assign)
-        lab.candidates(3)
-        out.append(lab)
-    return out
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--weights", default=None, help="model path without suffix (default: the shipped model)")
@@ -148,7 +132,7 @@ def main(argv=None) -> int:
         configs = {
             "fdlc full, 1 template (+ the atlas's answer)": (
                 lambda: ident.label(test, [template], atlas=panel.atlas).candidates(3),
-                lambda: _label_many(ident, tests, template, panel.atlas),
+                lambda: [lab.candidates(3) for lab in ident.label_many(tests, [template], atlas=panel.atlas)],
                 len(tests),
             ),
             f"fdlc full, panel ({len(panel.templates)} templates)": (

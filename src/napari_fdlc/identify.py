@@ -393,19 +393,41 @@ class Identifier:
         its own registration. ``fixed`` maps rows to names the user decided. With an ``atlas``
         (and an atlas weight in the settings), the templates' answer is multiplied by the
         atlas's own answer (:meth:`_atlas_answer`) raised to that weight."""
-        use_colour = self._check(test, templates, use_colour)
-        per_template, to_assign, infos = [], [], []
-        for template in templates:
-            probs, info = self.match_pair(template, test, use_colour, fixed=fixed)
-            per_template.append((probs[:, :-1], template.labels))
-            to_assign.append((info.pop("assign_probs")[:, :-1], template.labels))
-            infos.append(info)
-        names, probs = name_probabilities(per_template)
-        assign_probs = name_probabilities(to_assign)[1]
-        probs, assign_probs, joined = self._join_atlas(test, templates[0], infos[0]["mirrored"], names, probs,
-                                                       assign_probs, use_colour, atlas)
-        info = {"templates": infos, "colour": use_colour, "atlas": joined}
-        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight, assign_probs=assign_probs)
+        return self.label_many([test], templates, use_colour, atlas, fixed)[0]
+
+    def label_many(
+        self,
+        tests: list[NeuronTable],
+        templates: list[NeuronTable],
+        use_colour: bool = True,
+        atlas: Atlas | None = None,
+        fixed: dict[int, str] | None = None,
+    ) -> list[Labelling]:
+        """:meth:`label` for several tests, each template's matches batched over the tests
+        (:meth:`match_many`: many volumes per second instead of one pass per volume); the same
+        answers. ``fixed`` applies to every test (give it with one test)."""
+        if not tests:
+            return []
+        flags = [self._check(test, templates, use_colour) for test in tests]
+        if len(set(flags)) > 1:  # a test without a colour channel in common goes position only
+            return [self.label_many([test], templates, flag, atlas, fixed)[0] for test, flag in zip(tests, flags)]
+        use_colour = flags[0]
+        matches = [self.match_many(template, tests, use_colour, fixed) for template in templates]
+        out = []
+        for k, test in enumerate(tests):
+            per_template, to_assign, infos = [], [], []
+            for template, found in zip(templates, matches):
+                probs, info = found[k]
+                per_template.append((probs[:, :-1], template.labels))
+                to_assign.append((info.pop("assign_probs")[:, :-1], template.labels))
+                infos.append(info)
+            names, probs = name_probabilities(per_template)
+            assign_probs = name_probabilities(to_assign)[1]
+            probs, assign_probs, joined = self._join_atlas(test, templates[0], infos[0]["mirrored"], names, probs,
+                                                           assign_probs, use_colour, atlas)
+            info = {"templates": infos, "colour": use_colour, "atlas": joined}
+            out.append(make_labelling(names, probs, fixed, info, self.settings.no_match_weight, assign_probs=assign_probs))
+        return out
 
     def _join_atlas(self, test: NeuronTable, template: NeuronTable, mirrored_to_template: bool, names: list[str],
                     probs: np.ndarray, assign_probs: np.ndarray, use_colour: bool, atlas: Atlas | None):
