@@ -14,10 +14,12 @@ volumes per second when many volumes are given at once. Configurations:
   frame (registration, both chiralities), 5 templates × 2 chiralities through the model to
   choose the handedness, the other 5 templates in the chosen one (15 passes);
   "handedness set": the same with ``--chirality same`` (one chirality, 10 passes);
-* track: ``fdlc track`` defaults (full search, as above, on the first volume only; every later volume placed
-  by the warp of the one before, one model pass, assignment); latency = one volume at a time
-  (chunk 1, what a live recording needs), batched = chunk 16; the first volume's search is
-  included in the average;
+* track: ``fdlc track`` defaults (full search with the identification model, as above, on the
+  first volume only; every later volume placed by the warp of the one before, one pass of the
+  small tracking model, assignment) on a recording of ``--frames`` volumes; latency = one volume
+  at a time (chunk 1, what a live recording needs), batched = chunk 16; the first volume's
+  search is included in the average; "full model follows" = ``--follow-with full`` (the
+  identification model on every volume, as before session 8);
 * fast mode: ``fdlc track --method geometry``, the warp chain alone (no model; accuracy in
   docs/tracking.md), one volume after the other, so latency and throughput are the same thing;
 * CPD, identification: ``baselines.cpd_match`` (every orientation of ``geometry.ORIENTATIONS``,
@@ -92,7 +94,8 @@ def main(argv=None) -> int:
     ap.add_argument("--weights", default=None, help="model path without suffix (default: the shipped model)")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     ap.add_argument("--repeats", type=int, default=30, help="latency runs per configuration (median)")
-    ap.add_argument("--batch", type=int, default=64, help="volumes for the batched figures")
+    ap.add_argument("--batch", type=int, default=64, help="volumes for the batched identification figures")
+    ap.add_argument("--frames", type=int, default=200, help="volumes of the tracked recording (the first one's search is included)")
     ap.add_argument("--cpd-repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
@@ -115,7 +118,7 @@ def main(argv=None) -> int:
     tests = [simulate_worm(source, rng).table for _ in range(args.batch)]
     test = min(tests, key=lambda t: abs(len(t) - 130))
     panel = load_panel()
-    sequence, _ = simulate_sequence(source, args.seed, SequenceParams(frames=args.batch))
+    sequence, _ = simulate_sequence(source, args.seed, SequenceParams(frames=args.frames))
 
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     rows: dict[str, dict] = {}
@@ -148,6 +151,11 @@ def main(argv=None) -> int:
             "fdlc track (propagated, chunk 1 / 16)": (
                 lambda: track(sequence, identifier=ident, settings=TrackSettings(chunk=1)),
                 lambda: track(sequence, identifier=ident, settings=TrackSettings(chunk=16)),
+                len(sequence),
+            ),
+            "fdlc track, full model follows (--follow-with full)": (
+                lambda: track(sequence, identifier=ident, settings=TrackSettings(chunk=1, follow_with="full")),
+                lambda: track(sequence, identifier=ident, settings=TrackSettings(chunk=16, follow_with="full")),
                 len(sequence),
             ),
             "fast mode: track --method geometry (no model)": (
@@ -202,7 +210,8 @@ def main(argv=None) -> int:
     print(f"# speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__}, "
           f"{args.threads} torch thread(s), OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}; weights {weights or 'shipped'}")
     print(f"test volume: {len(test)} neurons; template {len(template)} neurons; panel {len(panel.templates)} templates; "
-          f"batched over {args.batch} volumes (panel: 16); load average before the run {load[0]:.1f}")
+          f"batched over {args.batch} volumes (panel: 16); tracking: a recording of {len(sequence)} volumes; "
+          f"load average before the run {load[0]:.1f}")
     print()
     head = ("| configuration | latency, ms/volume (CPU ms) | batched, volumes/s | CPD identification ÷ latency "
             "| CPD tracking ÷ latency | peak Python memory, MB |")

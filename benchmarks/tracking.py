@@ -34,6 +34,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # see benchmarks/speed.py
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--weights", default=None, help="model path without suffix (default: the shipped model)")
+    ap.add_argument("--tracking-weights", default=None, help="tracking model path without suffix (default: the shipped one)")
     ap.add_argument("--sequences", type=int, default=5)
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--motion", type=float, nargs="+", default=[1.0, 2.0])
@@ -51,9 +52,11 @@ def main(argv=None) -> int:
 
     weights = args.weights  # None: the shipped model
     identifier = Identifier.load(weights, device="cpu")
+    tracker = Identifier.load(args.tracking_weights, device="cpu") if args.tracking_weights else None
     base = TrackSettings(use_colour=False)
     methods = {
-        "fdlc track (defaults)": ("fdlc", base),
+        "fdlc track (defaults: the tracking model follows)": ("fdlc", base),
+        "fdlc track, full model follows (--follow-with full)": ("fdlc", replace(base, follow_with="full")),
         "fdlc track, refine_steps=1": ("fdlc", replace(base, refine_steps=1)),
         "fdlc track, model alone (placement=model, no position likelihood)": (
             "fdlc", replace(base, placement="model", chunk=1, position_sigma_um=0)),
@@ -63,21 +66,20 @@ def main(argv=None) -> int:
     if not args.no_cpd:
         methods["CPD (pycpd; 16 orientations on the first volume, then one registration from the volume before)"] = ("cpd", base)
     print(f"# tracking: {args.sequences} sequences × {args.frames} volumes per motion level, positions only; "
-          f"weights {weights or 'shipped'}; {args.threads} torch thread(s)")
+          f"weights {weights or 'shipped'}, tracking weights {args.tracking_weights or 'shipped'}; {args.threads} torch thread(s)")
     print()
     print("| motion | method | accuracy | untracked right | volumes/s |")
     print("|---|---|---|---|---|")
     for motion in args.motion:
-        params = SequenceParams(frames=args.frames)
-        params = replace(params, bend_curvature=params.bend_curvature * motion, roll=params.roll * motion,
-                         xy_rotation=params.xy_rotation * motion, drift_um=params.drift_um * motion)
+        params = SequenceParams(frames=args.frames).scaled(motion)
         sequences = [simulate_sequence(generate_worm(seed=args.seed + k), args.seed + k, params) for k in range(args.sequences)]
         for label, (method, settings) in methods.items():
             hit = total = free = 0
             elapsed = 0.0
             for volumes, origins in sequences:
                 t0 = time.perf_counter()
-                result = track(volumes, identifier=identifier, settings=settings, method=method)
+                follower = tracker if settings.follow_with == "tracking" else None
+                result = track(volumes, identifier=identifier, settings=settings, method=method, follower=follower)
                 elapsed += time.perf_counter() - t0
                 score = tracking_accuracy(result, origins, origins[0])
                 hit += score["accuracy"] * score["neurons"]

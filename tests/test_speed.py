@@ -81,10 +81,10 @@ def test_match_many_equals_match_pair(model, worm, other_worm):
         assert np.allclose(probs, single, atol=1e-5)
 
 
-def test_trace_equals_the_model_for_other_sizes_and_colour():
-    """The traced model (what unpadded batches on a CPU run) keeps neuron counts free and gives
-    the model's numbers, with and without colour."""
-    from napari_fdlc.model import trace_unpadded
+def test_trace_equals_the_model_for_other_sizes_colour_and_padding():
+    """The traced model (what batches on a CPU run) keeps neuron counts free and gives the
+    model's numbers, with and without colour, with and without padding."""
+    from napari_fdlc.model import trace_model
 
     torch.manual_seed(1)
     model = CorrespondenceModel({"layers": 2, "dim": 32, "colour_channels": 3}).eval()
@@ -94,16 +94,24 @@ def test_trace_equals_the_model_for_other_sizes_and_colour():
     (a,), tests = _worms(6, [60]), _worms(7, [50, 50])
     b = torch.stack(tests)
     ca, cb = torch.randn(1, 60, 3), torch.randn(2, 50, 3)
+    mask = torch.ones(2, 50, dtype=torch.bool)
+    mask[1, -7:] = False
     with torch.inference_mode():
-        plain, coloured = trace_unpadded(model, a[None], b), trace_unpadded(model, a[None], b, ca, cb)
+        plain, coloured = trace_model(model, a[None], b), trace_model(model, a[None], b, None, None, ca, cb)
+        padded = trace_model(model, a[None], b, None, mask, ca, cb)
         (a2,), other = _worms(8, [71]), torch.stack(_worms(9, [33, 33]))
         ca2, cb2 = torch.randn(1, 71, 3), torch.randn(2, 33, 3)
         assert torch.allclose(plain(a2[None], other), model(a2[None], other), atol=1e-5)
         assert torch.allclose(coloured(a2[None], other, ca2, cb2), model(a2[None], other, None, None, ca2, cb2), atol=1e-5)
         assert not torch.allclose(coloured(a2[None], other, ca2, cb2), plain(a2[None], other), atol=1e-3)
+        mask2 = torch.ones(2, 33, dtype=torch.bool)
+        mask2[0, -4:] = False
+        real = mask2[:, :, None].expand(-1, -1, 72)
+        expected = model(a2[None], other, None, mask2, ca2, cb2)
+        assert torch.allclose(padded(a2[None], other, mask2, ca2, cb2)[real], expected[real], atol=1e-5)
 
 
-def test_identifier_traces_unpadded_batches_only(model, worm, other_worm):
+def test_identifier_traces_each_pattern_of_masks_once(model, worm, other_worm):
     from napari_fdlc.identify import Identifier
 
     ident = Identifier(model, device="cpu")
@@ -111,9 +119,11 @@ def test_identifier_traces_unpadded_batches_only(model, worm, other_worm):
     with torch.inference_mode():
         out = ident._model_pass(a[None], b[None], None, None, None, None)
         assert torch.allclose(out, model(a[None], b[None]), atol=1e-5)
-        assert list(ident._traced) == [(1, 1, 2)]
+        assert list(ident._traced) == [(1, 1, False, False, False, False)]
         mask = torch.ones(1, 45, dtype=torch.bool)
         mask[0, -3:] = False
-        ident._model_pass(a[None], b[None], None, mask, None, None)  # padded: the model itself
-    assert list(ident._traced) == [(1, 1, 2)]
+        out = ident._model_pass(a[None], b[None], None, mask, None, None)
+        assert torch.allclose(out[0, :42], model(a[None], b[None], None, mask)[0, :42], atol=1e-5)
+        ident._model_pass(a[None], b[None], None, mask, None, None)
+    assert list(ident._traced) == [(1, 1, False, False, False, False), (1, 1, False, True, False, False)]
     assert ident.with_settings(temperature=2.0)._traced is ident._traced

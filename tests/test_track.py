@@ -50,7 +50,7 @@ def test_moved_copies_track_near_perfectly_with_untrained_model(identifier, gent
     """The geometric prior and the propagated warp do the work: even an untrained model tracks
     slightly moved, jittered copies with drops and spurious points."""
     volumes, origins = gentle
-    result = track(volumes, identifier=identifier, settings=TrackSettings(use_colour=False))
+    result = track(volumes, identifier=identifier, settings=TrackSettings(use_colour=False, follow_with="full"))
     score = tracking_accuracy(result, origins, origins[0])
     assert score["accuracy"] >= 0.95, score
     # The reference is the first volume: it is matched to itself.
@@ -62,6 +62,25 @@ def test_moved_copies_track_near_perfectly_with_untrained_model(identifier, gent
     assert searched[0] and not any(searched[1:])
     assert all(len(t) == len(v) for t, v in zip(result.track_id, volumes))
     assert all(((c >= 0) & (c <= 1)).all() for c in result.confidence)
+
+
+def test_the_tracking_model_follows_and_full_searches_use_the_identifier(identifier, gentle, monkeypatch):
+    """By default the shipped tracking model answers for every volume placed from the one
+    before, and the identification model makes the full search of the first volume only."""
+    from napari_fdlc.identify import Identifier, default_identifier, default_tracker
+
+    follower = default_tracker("cpu")
+    shipped = default_identifier().model.config
+    assert follower.model.config["dim"] * follower.model.config["layers"] < shipped["dim"] * shipped["layers"]
+    volumes, origins = gentle
+    passes = {"identifier": 0, "follower": 0}
+    for name, ident in (("identifier", identifier), ("follower", follower)):
+        original = ident._model_pass
+        monkeypatch.setattr(ident, "_model_pass", lambda *a, _o=original, _n=name: passes.__setitem__(_n, passes[_n] + 1) or _o(*a))
+    result = track(volumes, identifier=identifier, settings=TrackSettings(use_colour=False, chunk=1))
+    assert tracking_accuracy(result, origins, origins[0])["accuracy"] >= 0.97
+    assert passes["follower"] == len(volumes) - 1 and 0 < passes["identifier"] <= 4
+    assert isinstance(follower, Identifier)
 
 
 def test_cpd_tracker_follows_from_the_volume_before(gentle, monkeypatch):
@@ -217,11 +236,22 @@ def test_cli_track_bad_reference_time(tmp_path, capsys, gentle, untrained_weight
     assert code == 2 and "no time point 7" in capsys.readouterr().err
 
 
+def test_cli_track_follow_with_the_full_model(tmp_path, gentle, untrained_weights):
+    volumes, _ = gentle
+    src = _sequence_csv(volumes, tmp_path / "seq.csv")
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(src), "--weights", str(untrained_weights), "--follow-with", "full",
+                 "--no-color", "--quiet", "--out", str(out)]) == 0
+    assert (pd.read_csv(out)["track_id"] >= 0).mean() > 0.9
+
+
 def test_track_settings_are_checked():
     with pytest.raises(FdlcError, match="chunk"):
         TrackSettings(chunk=0).check()
     with pytest.raises(FdlcError, match="search"):
         TrackSettings(search="sideways").check()
+    with pytest.raises(FdlcError, match="follow_with"):
+        TrackSettings(follow_with="nobody").check()
 
 
 def test_cli_track_chirality_option(tmp_path, worm):

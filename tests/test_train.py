@@ -118,3 +118,33 @@ def test_calibration_does_not_depend_on_the_settings_it_starts_from():
     assert calibrate(Identifier(model, odd, "cpu"), pairs, log=lambda *_: None) == first
     assert calibrate(Identifier(model, replace(odd, **{k: v for k, v in first.items() if k != "chirality"}), "cpu"),
                      pairs, log=lambda *_: None) == first
+
+
+def test_tracking_examples_are_placed_as_the_tracker_places_them():
+    """A tracking example is a recording's first volume (the reference, its canonical frame) and
+    a later volume placed by the geometric chain: partners land within a few µm, and spurious
+    or dropped neurons target "no match"."""
+    from napari_fdlc.corpus import Worm
+    from napari_fdlc.train import tracking_example
+
+    worms = [Worm("A", f"w{i}", generate_worm(seed=i)) for i in range(3)]
+    rng = np.random.default_rng(4)
+    cfg = TrainConfig(task="track", max_neurons=80)
+    for _ in range(5):
+        a, b, t, negative, ca, cb = tracking_example(worms, rng, cfg)
+        hit = t < len(a)
+        assert not negative and ca is not None and cb is not None
+        assert 0 < (~hit).sum() < 0.4 * len(t)  # some no-match (drops from the reference, spurious)
+        assert np.median(np.linalg.norm(b[hit] - a[t[hit]], axis=1)) < 2.0
+
+
+def test_tracking_model_trains_and_validates_on_the_corpus(corpus_path, tmp_path):
+    from napari_fdlc.model import load_model
+    from napari_fdlc.train import train
+
+    cfg = TrainConfig(corpus=str(corpus_path), task="track", steps=2, eval_every=2, batch_size=2,
+                      val_labs=("SF",), train_labs=("SF",), val_worms_per_lab=1,
+                      model={"dim": 16, "layers": 1, "colour_channels": 3}, out=str(tmp_path / "t"))
+    result = train(cfg, log=lambda *_: None)
+    assert 0.5 < result["history"][-1]["val_track"]["SF"] <= 1.0
+    load_model(tmp_path / "t")

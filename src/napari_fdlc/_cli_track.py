@@ -38,6 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=("fdlc", "cpd", "geometry"), default="fdlc",
                         help="fdlc (default), cpd (classical baseline) or geometry (the warp chain alone, no model)")
     parser.add_argument("--weights", help="model weights (path without suffix); default: the shipped model")
+    parser.add_argument("--follow-with", choices=("tracking", "full"), default="tracking",
+                        help="model for the volumes placed from the one before: tracking (default; the small model "
+                        "trained for it, about twice as fast) or full (the identification model)")
+    parser.add_argument("--tracking-weights", help="tracking model weights (path without suffix); default: the shipped one")
     parser.add_argument("--chirality", choices=CHIRALITIES, default="auto",
                         help="handedness of the volumes relative to the reference(s), as for fdlc label")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads for the model (default: torch's)")
@@ -50,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from .track import TrackSettings, read_sequence, track
 
     settings = TrackSettings(search=args.search, placement=args.placement, refine_steps=args.refine_steps,
-                             chunk=args.chunk, use_colour=not args.no_colour)
+                             chunk=args.chunk, use_colour=not args.no_colour, follow_with=args.follow_with)
     settings.check()
     out = Path(args.out)
     if out.is_dir():
@@ -66,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         references.append(_volume_at(seq, raw))
     if args.method != "fdlc" and len(references) > 1:
         raise FdlcError(f"--method {args.method} takes one reference")
-    identifier = None
+    identifier = follower = None
     if args.method == "fdlc":
         from .identify import Identifier, default_identifier
 
@@ -75,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
 
             torch.set_num_threads(args.threads)
         identifier = (Identifier.load(args.weights) if args.weights else default_identifier()).with_chirality(args.chirality)
+        if args.tracking_weights and args.follow_with == "tracking":
+            follower = Identifier.load(args.tracking_weights)
     start = time.perf_counter()
 
     def progress(done: int, total: int) -> None:
@@ -82,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
             rate = done / max(time.perf_counter() - start, 1e-9)
             print(f"fdlc track: {done}/{total} volumes ({rate:.0f}/s)", file=sys.stderr, flush=True)
 
-    result = track(seq, references or None, identifier, settings, progress, method=args.method)
+    result = track(seq, references or None, identifier, settings, progress, method=args.method, follower=follower)
     write_table(result.frame(seq.volumes), out)
     return 0
 

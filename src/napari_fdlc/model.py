@@ -181,28 +181,32 @@ class CorrespondenceModel(nn.Module):
         return torch.cat([logits, no_match], dim=-1).log_softmax(dim=-1)
 
 
-def trace_unpadded(model: CorrespondenceModel, template_xyz, test_xyz, template_colour=None, test_colour=None):
-    """A TorchScript trace of ``model`` for unpadded inputs like these: called as ``f(template,
-    test)`` or, with colours, ``f(template, test, template_colour, test_colour)``.
+def trace_model(model: CorrespondenceModel, template_xyz, test_xyz, template_mask=None, test_mask=None,
+                template_colour=None, test_colour=None):
+    """A TorchScript trace of ``model`` for inputs like these, called with the given ones only:
+    ``f(template, test, *[masks and colours that are not None])``.
 
-    Neuron counts stay free; the batch sizes and the use of colour are fixed by the example.
-    Same numbers as the model; on a CPU a small pass spends much of its time in Python
-    dispatch, which the trace skips (about 1 ms of 5 for one 130-neuron test)."""
+    Neuron counts stay free; the batch sizes and which masks and colours are given are fixed by
+    the example (a mask given must have padding: the masked path is what gets traced). Same
+    numbers as the model; on a CPU a small pass spends much of its time in Python dispatch,
+    which the trace skips (about 1 ms of 5 for one 130-neuron test)."""
     import warnings
 
-    class Unpadded(nn.Module):
+    present = [x is not None for x in (template_mask, test_mask, template_colour, test_colour)]
+
+    class Traced(nn.Module):
         def __init__(self):
             super().__init__()
             self.model = model
 
-        def forward(self, *inputs):
-            a, b, *colours = inputs
-            return self.model(a, b, None, None, *(colours or (None, None)))
+        def forward(self, a, b, *given):
+            it = iter(given)
+            return self.model(a, b, *(next(it) if p else None for p in present))
 
-    example = (template_xyz, test_xyz) if template_colour is None else (template_xyz, test_xyz, template_colour, test_colour)
-    with warnings.catch_warnings():  # the tracer warns about Python ints it cannot follow: none matter here
+    example = tuple(x for x in (template_xyz, test_xyz, template_mask, test_mask, template_colour, test_colour) if x is not None)
+    with warnings.catch_warnings():  # the tracer warns about Python values it cannot follow: none matter here
         warnings.simplefilter("ignore")
-        return torch.jit.trace(Unpadded().eval(), example, check_trace=False)
+        return torch.jit.trace(Traced().eval(), example, check_trace=False)
 
 
 def _real_mask(mask):

@@ -74,6 +74,14 @@ class TrainConfig:
     init_from: str | None = None  # start from these weights (keys that fit; new branches start at zero)
     resume: bool = False  # continue from the checkpoint at ``out`` (weights and step count)
     calibrate: bool = True  # fit colour weight and temperature on training-lab validation pairs
+    # "identify": pairs of worms as ``fdlc label`` shows them to the model (the kinds above).
+    # "track": the tracking model (track.py): a volume of a simulated recording of one worm,
+    # placed onto the recording's first volume by the tracker's geometric chain, exactly as
+    # ``fdlc track`` shows it to the model; validated by tracking accuracy per lab.
+    task: str = "identify"
+    motion: tuple[float, float] = (0.5, 3.5)  # track: recordings' motion, × SequenceParams' (uniform)
+    frames_apart: int = 30  # track: the volume is 1..this many volumes after the reference
+    stale_warp: int = 3  # track: placed with the warp of one of the 1..this many volumes before
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -91,7 +99,7 @@ class TrainConfig:
         unknown = set(data) - set(cls.__dataclass_fields__)
         if unknown:
             raise FdlcError(f"{path}: unknown training setting(s) {', '.join(sorted(unknown))}")
-        for key in ("train_labs", "val_labs"):
+        for key in ("train_labs", "val_labs", "motion"):
             if key in data:
                 data[key] = tuple(data[key])
         return cls(**data)
@@ -193,7 +201,10 @@ def _colour_features(table: NeuronTable) -> np.ndarray | None:
 
 def sample_example(worms: list[Worm], rng, cfg: TrainConfig, atlas=None):
     """One training example: a synthetic pair, a real cross-worm pair, or (with ``atlas``, the
-    atlas of the training worms) a real worm against a worm sampled from the atlas."""
+    atlas of the training worms) a real worm against a worm sampled from the atlas; with
+    ``cfg.task == "track"``, a tracking example (:func:`tracking_example`)."""
+    if cfg.task == "track":
+        return tracking_example(worms, rng, cfg)
     while True:
         u = rng.random()
         placement = {}
@@ -217,6 +228,39 @@ def sample_example(worms: list[Worm], rng, cfg: TrainConfig, atlas=None):
         example = make_example(template, test, target, rng, cfg, **placement)
         if example is not None:
             return example
+
+
+def tracking_example(worms: list[Worm], rng, cfg: TrainConfig):
+    """A volume of a simulated recording of one training worm (``track.simulate_sequence`` at a
+    random motion) placed as ``fdlc track`` places it: the warp of a volume before (fitted on
+    that volume's true partners, as a chain on track has it) carried into the geometric step.
+    That volume is 1 to ``stale_warp`` volumes back, so that the model also sees the larger
+    residuals of a chain that lags. The template is the recording's first volume, the
+    reference; targets are its rows."""
+    from .track import SequenceParams, TrackSettings, _geometric_step, _Reference, fit_warp, simulate_sequence
+
+    table = _crop(worms[rng.integers(len(worms))].table, cfg.max_neurons, rng)
+    t = int(rng.integers(1, cfg.frames_apart + 1))
+    lag = int(rng.integers(1, min(cfg.stale_warp, t) + 1))
+    params = SequenceParams(frames=t + 1).scaled(rng.uniform(*cfg.motion))
+    volumes, origins = simulate_sequence(table, rng, params, only=(0, t - lag, t))
+    if t == lag:  # the volume the warp comes from is the reference itself
+        volumes, origins = [volumes[0], *volumes], [origins[0], *origins]
+    ref = _Reference(volumes[0], np.arange(len(volumes[0])))
+    row = np.full(len(table), -1)
+    row[origins[0][origins[0] >= 0]] = np.flatnonzero(origins[0] >= 0)
+
+    def partners(origin):  # reference row of each neuron, -1 when it has none (or is spurious)
+        return np.where(origin >= 0, row[np.maximum(origin, 0)], -1)
+
+    s = TrackSettings()
+    before = partners(origins[1])
+    warp = fit_warp(volumes[1].xyz, ref.xyz[np.maximum(before, 0)], (before >= 0).astype(float),
+                    s.warp_sigma_um, s.warp_smoothness)
+    placed = _geometric_step(ref, volumes[2], warp, s)(volumes[2].xyz)
+    target = partners(origins[2])
+    target = np.where(target >= 0, target, len(ref.xyz))
+    return _example(ref.xyz, placed, target, False, volumes[0], volumes[2])
 
 
 def collate(examples, torch, colour_dropout: float = 0.0, rng=None):
@@ -297,6 +341,38 @@ def _validate(identifier, val_pairs: dict[str, list], panel_tests: dict) -> dict
     return out
 
 
+def tracking_sequences(val: dict[str, list[Worm]], cfg: TrainConfig, frames: int = 40) -> dict[str, list]:
+    """Per lab: recordings of its held-out worms (the first ``val_worms_per_lab`` of each
+    validation list), at motion 1 and 3, with known tracks."""
+    from .track import SequenceParams, simulate_sequence
+
+    out = {}
+    for lab, worms in val.items():
+        held = worms[: cfg.val_worms_per_lab] if lab in cfg.train_labs else worms
+        out[lab] = [simulate_sequence(w.table, cfg.seed + 1000 * k + int(motion), SequenceParams(frames=frames).scaled(motion))
+                    for k, w in enumerate(held) for motion in (1.0, 3.0)]
+    return out
+
+
+def _validate_tracking(follower, sequences: dict[str, list]) -> dict[str, dict[str, float]]:
+    """Tracking accuracy per lab (``fdlc track`` defaults, positions only) with ``follower``
+    answering for the placed volumes; the first volume is the reference."""
+    from .identify import default_identifier
+    from .track import TrackSettings, track, tracking_accuracy
+
+    identifier = default_identifier()
+    out = {"val_track": {}}
+    for lab, recordings in sequences.items():
+        hit = total = 0
+        for volumes, origins in recordings:
+            result = track(volumes, identifier=identifier, follower=follower, settings=TrackSettings(use_colour=False))
+            acc = tracking_accuracy(result, origins, origins[0])
+            hit += acc["accuracy"] * acc["neurons"]
+            total += acc["neurons"]
+        out["val_track"][lab] = round(hit / max(total, 1), 4)
+    return out
+
+
 def validation_pairs(val: dict[str, list[Worm]], per_lab: int, rng) -> dict[str, list]:
     out = {}
     for lab, worms in val.items():
@@ -340,6 +416,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
     worms = load_corpus(cfg.corpus)
     train_worms, val_worms = split_worms(worms, cfg, rng)
     val_pairs = validation_pairs(val_worms, cfg.val_pairs_per_lab, np.random.default_rng(cfg.seed + 1))
+    recordings = tracking_sequences(val_worms, cfg) if cfg.task == "track" else None
     atlas = build_atlas(train_worms) if cfg.panel_fraction > 0 else None
     own_pairs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
     panel_tests = _panel_tests(worms, own_pairs, cfg.train_labs) if atlas is not None else {}
@@ -386,11 +463,13 @@ def train(cfg: TrainConfig, log=print) -> dict:
         if step % cfg.eval_every == 0 or step == cfg.steps or out_of_time:
             model.eval()
             identifier = Identifier(model, settings, device)
-            scores = _validate(identifier, val_pairs, panel_tests)
+            scores = (_validate_tracking(identifier, recordings) if recordings is not None
+                      else _validate(identifier, val_pairs, panel_tests))
             # Keep the checkpoint best on average over the *training* labs' held-out worms
             # (pairs position only and with colour, the panel with colour when it is trained):
             # a held-out lab is watched, never used to choose.
-            own = [lab for lab in scores["val_top1"] if lab in cfg.train_labs] or list(scores["val_top1"])
+            first = next(iter(scores.values()))
+            own = [lab for lab in first if lab in cfg.train_labs] or list(first)
             mean = float(np.mean([d[lab] for d in scores.values() for lab in own if lab in d])) if own else 0.0
             entry = {"step": step, "minutes": round(elapsed, 2), "loss": float(np.mean(running)), **scores,
                      "mean_top1": round(mean, 4)}
@@ -405,9 +484,13 @@ def train(cfg: TrainConfig, log=print) -> dict:
             log(f"stopped at step {step} (--stop-at or the time limit of {cfg.time_limit_min} min)")
             break
     minutes = (time.time() - start) / 60
-    if cfg.calibrate and best >= 0:
-        calibrate_checkpoint(cfg, val_pairs, {"train_minutes": round(minutes, 1), "device": device,
-                                              "torch_threads": torch.get_num_threads()}, log)
+    where = {"train_minutes": round(minutes, 1), "device": device, "torch_threads": torch.get_num_threads()}
+    if cfg.calibrate and best >= 0 and cfg.task == "identify":
+        calibrate_checkpoint(cfg, val_pairs, where, log)
+    elif best >= 0:  # the tracking model keeps the default inference settings
+        meta = {**json.loads(out.with_suffix(".json").read_text()), **where}
+        with atomic_write(out.with_suffix(".json"), "w", encoding="utf-8") as handle:
+            handle.write(json.dumps(meta, indent=2))
     return {"best_mean_top1": best, "history": history, "minutes": minutes}
 
 
