@@ -256,11 +256,13 @@ def fit_warp(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, sigma: float
 
 
 def _grid_centres(xyz: np.ndarray, cell: float) -> np.ndarray:
-    """The mean position of the points in each occupied cube of side ``cell``."""
+    """The mean position of the points in each occupied cube of side ``cell`` (in the order of
+    the cubes' index)."""
     index = np.floor((xyz - xyz.min(axis=0)) / cell).astype(np.int64)
     key = (index[:, 0] * (index[:, 1].max() + 1) + index[:, 1]) * (index[:, 2].max() + 1) + index[:, 2]
-    _, cube, counts = np.unique(key, return_inverse=True, return_counts=True)
-    return np.column_stack([np.bincount(cube, weights=xyz[:, d]) for d in range(3)]) / counts[:, None]
+    counts = np.bincount(key)
+    occupied = np.flatnonzero(counts)
+    return np.column_stack([np.bincount(key, weights=xyz[:, d])[occupied] for d in range(3)]) / counts[occupied, None]
 
 
 class _Reference:
