@@ -17,9 +17,11 @@ reference by the one-to-one assignment on distance, refit, a few rounds (ICP-lik
 does not depend on the model's answers, so the model then sees a whole chunk of ``chunk``
 volumes as one batch, and the result does not depend on the chunk size. A volume where fewer
 than ``lost_fraction`` of the neurons pair up (a jump) gets the full search again and the
-chain restarts from it. The model's log-probabilities (plus colour) are fused with a
+chain restarts from it. Placed volumes go through the *tracking model* (``follow_with``:
+the small model trained on exactly these placements, ``train.tracking_example``; the full
+searches use the identification model). Its log-probabilities (plus colour) are fused with a
 same-worm position likelihood (``position_sigma_um``: within one recording a neuron stays where
-the warp puts it, up to segmentation jitter; the model itself was trained across worms) and the
+the warp puts it, up to segmentation jitter) and the
 one-to-one assignment gives the track IDs. ``refine_steps`` more model passes re-place each
 volume by the warp fitted on its own answer. With ``placement="model"`` the warp comes from the
 model's answer for the last volume of the chunk before instead (no geometric chain).
