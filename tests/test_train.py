@@ -148,3 +148,20 @@ def test_tracking_model_trains_and_validates_on_the_corpus(corpus_path, tmp_path
     result = train(cfg, log=lambda *_: None)
     assert 0.5 < result["history"][-1]["val_track"]["SF"] <= 1.0
     load_model(tmp_path / "t")
+
+
+@pytest.mark.parametrize("config, flags, message", [
+    ({"task": "dance"}, [], "unknown training task 'dance'"),
+    ({"task": "track"}, ["--calibrate-only"], "a tracking model has no inference settings"),
+])
+def test_train_cli_refuses_what_cannot_be_done(tmp_path, capsys, config, flags, message):
+    import json
+
+    from napari_fdlc.cli import main
+
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps(config))
+    assert main(["train", "--config", str(path), "--out", str(tmp_path / "m"), *flags]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not (tmp_path / "m.safetensors").exists()

@@ -136,6 +136,9 @@ def _run_train(args) -> int:
         cfg.steps = args.steps
     if args.batch_size:
         cfg.batch_size = args.batch_size
+    cfg.check()
+    if args.calibrate_only and cfg.task != "identify":
+        raise FdlcError("--calibrate-only: a tracking model has no inference settings to fit (they stay at their defaults)")
     if args.calibrate_only:
         from .train import calibrate_checkpoint
 

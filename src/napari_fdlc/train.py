@@ -40,6 +40,9 @@ from .simulate import SimulationParams, simulate_worm
 from .table import NeuronTable
 
 
+TASKS = ("identify", "track")
+
+
 @dataclass
 class TrainConfig:
     corpus: str | None = None
@@ -85,6 +88,12 @@ class TrainConfig:
 
     def to_json(self) -> dict:
         return asdict(self)
+
+    def check(self) -> None:
+        from .errors import FdlcError
+
+        if self.task not in TASKS:
+            raise FdlcError(f"unknown training task '{self.task}' (use {' or '.join(TASKS)})")
 
     @classmethod
     def from_json(cls, path: str | Path) -> "TrainConfig":
@@ -403,6 +412,7 @@ def _load_start(model, path: str, resume: bool, log) -> int:
 
 
 def train(cfg: TrainConfig, log=print) -> dict:
+    cfg.check()
     import torch
 
     from .identify import Identifier, InferenceSettings
