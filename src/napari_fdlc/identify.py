@@ -186,7 +186,7 @@ class Identifier:
     def _model_pass(self, tmpl, test, tmpl_mask, test_mask, tmpl_c, test_c):
         """The model on one batch. On the CPU it goes through a trace of the model
         (:func:`model.trace_model`, one per batch shape and pattern of masks and colours, made on
-        first use in ~0.1 s): the same numbers, 20-40 % less time."""
+        first use in ~0.1 s): the same numbers, 10-20 % less time."""
         if self.device != "cpu" or (tmpl_c is None) != (test_c is None):
             return self.model(tmpl, test, tmpl_mask, test_mask, tmpl_c, test_c)
         from .model import trace_model
