@@ -132,3 +132,15 @@ def test_one_to_one_fixed_row_takes_its_name_from_the_others():
     lab = make_labelling(["A", "B"], probs, fixed={0: "A"})
     assert lab.auto_id == ["A", "B"] and lab.auto_conf[0] == pytest.approx(0.6)  # the model's own belief
     assert lab.candidates(1)[0][1] == ["B"]
+
+
+def test_assign_log_is_assign_on_log_probabilities():
+    from scipy.special import log_softmax
+
+    from napari_fdlc.match import assign, assign_log
+
+    rng = np.random.default_rng(5)
+    log_p = log_softmax(rng.normal(0, 3, (40, 36)), axis=1)
+    log_p[3, :-1] = -800.0  # a row certain of "no match": costs are clipped alike
+    for weight in (0.2, 1.0):
+        assert np.array_equal(assign_log(log_p, weight), assign(np.exp(log_p[:, :-1]), None, weight))

@@ -89,6 +89,14 @@ def assign(probs: np.ndarray, fixed: dict[int, int] | None = None, no_match_weig
     return result
 
 
+def assign_log(log_p: np.ndarray, no_match_weight: float = 1.0) -> np.ndarray:
+    """:func:`assign` (no fixed rows) on log-probabilities (N, M + 1; the last column "no
+    match") as a model gives them, without taking their exp and log again: the same costs,
+    clipped alike."""
+    floored = np.maximum(log_p, np.log(_TINY))
+    return min_cost_matching(-floored[:, :-1], -floored[:, -1] - np.log(no_match_weight))
+
+
 def min_cost_matching(cost: np.ndarray, unmatched: np.ndarray) -> np.ndarray:
     """Row i -> its column (each column used at most once) or -1, minimising the summed cost
     where leaving row i unmatched costs ``unmatched[i]``: the Hungarian algorithm on costs capped
