@@ -101,6 +101,21 @@ def test_a_dim_nucleus_pressed_on_a_bright_one_needs_the_fine_scale():
     assert len(both) == 2 and score_detections(truth.xyz, both[:, ::-1])["tp"] == 2
 
 
+@pytest.mark.parametrize("colours, expected", [((1.0, 0.0), 2), ((1.0, 1.0), 1)])
+def test_touching_nuclei_of_different_colours_are_split_by_colour(colours, expected):
+    # 2 µm nuclei 2.2 µm apart in z (PSF 0.7 µm, 1 µm planes), the upper 1.65x brighter in W:
+    # one blob in W; R-only over G-only is two blobs in the colour channels, R over R is not.
+    r, g = np.array(colours), 1.0 - np.array(colours)
+    table = NeuronTable([[10.0, 10.0, 6.0], [10.0, 10.0, 8.2]],
+                        colours={"R": r, "G": g, "B": np.zeros(2), "W": np.array([-1.0, 1.0])})
+    stack, truth = render_stack(table, seed=0, align=False, shape_zyx=(16, 80, 100), gut=False, brightness_sd=0.0,
+                                nucleus_radius_sd_um=0.0, nucleus_radius_um=1.0, texture=0.0, min_spacing_um=1.0)
+    assert len(segment_stack(stack, colour_split=False)) == 1
+    found = segment_stack(stack)
+    assert len(found) == expected
+    assert score_detections(truth.xyz, found.xyz)["tp"] == expected
+
+
 @pytest.mark.parametrize("radius, diameter", [(1.8, 3.0), (2.2, 4.5)])
 def test_a_large_elongated_nucleus_is_one(radius, diameter):
     table = NeuronTable([[12.0, 10.0, 6.0]])
@@ -227,6 +242,11 @@ def test_cli_segment_writes_a_table(tmp_path, rendered, capsys):
     np.testing.assert_allclose(kept.xyz, table.xyz)
     np.testing.assert_allclose(kept.colours["B"], table.colours["B"])
     assert not np.allclose(kept.colours["R"], table.colours["R"])
+    # --no-colour-split: W's own detections only, which come first in the default table.
+    assert main(["segment", str(path), "--no-colour-split", "--quiet", "--out", str(raw)]) == 0
+    w_only = read_table(raw)
+    assert 0 < len(w_only) <= len(table)
+    np.testing.assert_allclose(w_only.xyz, table.xyz[: len(w_only)])
     # Roles and voxel size from the command line win over the file.
     assert main(["segment", str(path), "--voxel-size", "2", "0.5", "0.5", "--channels", "-", "-", "B", "W",
                  "--diameter-um", "3", "--quiet", "--out", str(out)]) == 0

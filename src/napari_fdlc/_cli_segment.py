@@ -32,6 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-unmix", action="store_true",
         help="keep the W (TagRFP-T) bleed-through in R and G (for stacks already unmixed)",
     )
+    parser.add_argument(
+        "--no-colour-split", action="store_true",
+        help="find nuclei on W alone (by default a touching nucleus that only R, G or B separates is added)",
+    )
     parser.add_argument("--out", required=True, help="output neuron table (CSV)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
@@ -55,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
                       file=sys.stderr, flush=True)
 
         table = segment_stack(stack, diameter_um=args.diameter_um, threshold=args.threshold, progress=progress,
-                              unmix=not args.no_unmix)
+                              unmix=not args.no_unmix, colour_split=not args.no_colour_split)
         if len(table) == 0:
             raise FdlcError(
                 f"{args.stack}: no nuclei found; check --voxel-size and --diameter-um, or lower --threshold"
