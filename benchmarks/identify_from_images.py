@@ -3,7 +3,7 @@ against another worm of its lab — and compare with naming the worm's true posi
 
     python benchmarks/identify_from_images.py [--worms-per-lab 2] [--protocol pairs|panel] [--corpus PATH]
 
-For each test worm: the renderer (napari_fdlc.render, realistic noise) makes the stack;
+For each test worm: the renderer (napari_fdlc.render, its default noise) makes the stack;
 segment_stack finds the nuclei and reads their colours; fdlc (with colour) names them against a
 labelled template (the next worm of the same lab) with the atlas's answer beside it, as ``fdlc
 label --template`` does (the atlas rebuilt without the test's lab). Detections are matched one-to-one to true

@@ -238,6 +238,35 @@ def test_temperatures_change_the_confidence_not_the_names(worm, other_worm):
         assert b.auto_conf[named].mean() > a.auto_conf[named].mean() + 0.02
 
 
+def test_the_doubt_about_the_handedness_mixes_in_the_other_answer(worm, other_worm, monkeypatch):
+    """With a template, the probabilities reported are the chosen handedness's answer mixed
+    with the other one's (each alone is what --chirality same / mirrored gives, the atlas's
+    answer joined in that handedness); the names stay the chosen handedness's, and a
+    handedness the user set leaves nothing to doubt."""
+    import napari_fdlc.identify as identify
+    from napari_fdlc.reference import load_atlas
+    from napari_fdlc.simulate import simulate_worm
+
+    answers = []  # what each call hands make_labelling (before its one-to-one normalisation)
+    make_labelling = identify.make_labelling
+    monkeypatch.setattr(identify, "make_labelling", lambda names, probs, *a, **k: (
+        answers.append(probs), make_labelling(names, probs, *a, **k))[1])
+    test = simulate_worm(worm, 3).table
+    atlas = load_atlas()
+    plain = Identifier.load().with_settings(template_chirality_doubt=0.0, atlas_weight=0.5)
+    doubtful = plain.with_settings(template_chirality_doubt=0.3)
+    a, b = plain.label(test, [other_worm], atlas=atlas), doubtful.label(test, [other_worm], atlas=atlas)
+    assert a.auto_id == b.auto_id and a.names == b.names
+    assert "other_handedness" not in b.info["templates"][0]  # a few kB per answer, used up
+    chosen = "mirrored" if a.info["templates"][0]["mirrored"] else "same"
+    plain.with_settings(chirality={"same": "mirrored", "mirrored": "same"}[chosen]).label(test, [other_worm], atlas=atlas)
+    doubtful.with_settings(chirality=chosen).label(test, [other_worm], atlas=atlas)
+    a_probs, b_probs, other_probs, told_probs = answers
+    np.testing.assert_allclose(b_probs, 0.7 * a_probs + 0.3 * other_probs, rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(told_probs, a_probs, rtol=1e-4, atol=1e-7)
+    assert np.abs(b_probs - a_probs).max() > 0.05
+
+
 def test_several_recordings_share_a_handedness_when_they_clearly_agree(monkeypatch):
     """Identifier.label_panel_many: a sign test over the tests' evidence (stubbed here: each
     test's mirrored-minus-same willingness is in its source) decides one handedness for all."""

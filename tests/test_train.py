@@ -165,3 +165,20 @@ def test_train_cli_refuses_what_cannot_be_done(tmp_path, capsys, config, flags, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
     assert not (tmp_path / "m.safetensors").exists()
+
+
+def test_mixed_handedness_rate_counts_pairs_of_a_lab_that_differ():
+    """1 of lab A's 4 worms is mirrored (z flipped): 6 of its 12 ordered pairs differ; lab B's
+    2 worms agree (0 of 2): 6 of 14."""
+    from napari_fdlc.corpus import Worm
+    from napari_fdlc.table import NeuronTable
+    from napari_fdlc.train import mixed_handedness_rate
+
+    def mirrored(table):
+        return NeuronTable(table.xyz * np.array([1.0, 1.0, -1.0]), labels=table.labels)
+
+    worms = [Worm("A", str(s), generate_worm(seed=s)) for s in range(3)]
+    worms += [Worm("A", "m", mirrored(generate_worm(seed=3))), Worm("B", "4", generate_worm(seed=4)),
+              Worm("B", "5", generate_worm(seed=5))]
+    assert mixed_handedness_rate(worms) == pytest.approx(6 / 14)
+    assert mixed_handedness_rate(worms[:3]) == 0.0

@@ -75,6 +75,10 @@ class InferenceSettings:
     # weight 1 took a position-only model from 18 to 32 % top-1 on validation pairs (stage 1).
     fallback_colour_weight: float = 1.0
     chirality_doubt: float = 0.0  # panel: weight of the other chirality's answer
+    # With a template: the same, for the probabilities reported (the names stay the chosen
+    # chirality's). A whole worm named in the wrong handedness has its left/right pairs swapped
+    # and came out as confident as a right one (KK, SK1 pairs: 5-10 % top-1 at confidence 0.7-0.8).
+    template_chirality_doubt: float = 0.0
     panel_temperature: float = 1.0  # panel: on the averaged answer (fitted on training labs)
     # With a template: the weight of the atlas's own answer (registration posterior, no model)
     # multiplied into the template's, with colour and position only; 0 = the template alone.
@@ -315,6 +319,9 @@ class Identifier:
             colour = self._colour_evidence(template, test, model_saw_colour) if use_colour else None
             info = {"mirrored": bool(f["mirrored"][f["best"]]), "willingness": f["willingness"].tolist(),
                     "assign_probs": self._answer(f["log_p"], colour, calibrated=False)}
+            other = _other_handedness(f) if agreement is None and self.settings.template_chirality_doubt else None
+            if other is not None:  # the other chirality's answer, for label_many's doubt
+                info["other_handedness"] = self._answer(f["all_log_p"][other], colour)
             out.append((self._answer(f["log_p"], colour), info))
         return out
 
@@ -424,9 +431,25 @@ class Identifier:
             assign_probs = name_probabilities(to_assign)[1]
             probs, assign_probs, joined = self._join_atlas(test, templates[0], infos[0]["mirrored"], names, probs,
                                                            assign_probs, use_colour, atlas)
+            others = [info.pop("other_handedness", None) for info in infos]
+            if all(o is not None for o in others):
+                probs = self._with_doubt(test, templates, infos[0]["mirrored"], names, probs, others, use_colour, atlas)
             info = {"templates": infos, "colour": use_colour, "atlas": joined}
             out.append(make_labelling(names, probs, fixed, info, self.settings.no_match_weight, assign_probs=assign_probs))
         return out
+
+    def _with_doubt(self, test: NeuronTable, templates: list[NeuronTable], mirrored: bool, names: list[str],
+                    probs: np.ndarray, others: list[np.ndarray], use_colour: bool, atlas: Atlas | None) -> np.ndarray:
+        """The probabilities reported with a template: the chosen chirality's answer mixed with
+        the other chirality's (each template's best placement in the other handedness, joined
+        with the atlas in that handedness), at the fitted ``template_chirality_doubt``. Positions
+        and colours barely tell a worm from its mirror image, so a name is trusted only as much
+        as the handedness it was given in."""
+        # The same templates' names: the same columns as ``probs``.
+        other = name_probabilities([(o[:, :-1], t.labels) for o, t in zip(others, templates)])[1]
+        other = self._join_atlas(test, templates[0], not mirrored, names, other, other, use_colour, atlas)[0]
+        doubt = self.settings.template_chirality_doubt
+        return (1 - doubt) * probs + doubt * other
 
     def _join_atlas(self, test: NeuronTable, template: NeuronTable, mirrored_to_template: bool, names: list[str],
                     probs: np.ndarray, assign_probs: np.ndarray, use_colour: bool, atlas: Atlas | None):
@@ -606,6 +629,12 @@ def _with_no_match(probs: np.ndarray) -> np.ndarray:
 def _renormalised(full: np.ndarray) -> np.ndarray:
     """Rows of (N, names + 1) scaled to sum 1, then without the "no match" column."""
     return (full / full.sum(axis=1, keepdims=True))[:, :-1]
+
+
+def _other_handedness(found: dict) -> int | None:
+    """Index of the likeliest candidate placement in the chirality not chosen (None: none tried)."""
+    other = np.flatnonzero(found["mirrored"] != found["mirrored"][found["best"]])
+    return int(other[np.argmax(found["willingness"][other])]) if len(other) else None
 
 
 def _willingness(log_ps: np.ndarray, m: int) -> np.ndarray:

@@ -32,7 +32,7 @@ import numpy as np
 from .colour import IDENTITY_CHANNELS, normal_scores
 from .corpus import LABS, Worm, load_corpus
 from .errors import atomic_write
-from .evaluate import Scores
+from .evaluate import Scores, mirrored_relative_to
 from .geometry import N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, fit_affine, true_orientation
 from .reference import atlas_worm, build_atlas
 from .register import register, template_mixture
@@ -518,6 +518,9 @@ def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, extra:
     own_labs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
     settings = calibrate(Identifier.load(out, cfg.device), own_labs, log,
                          panel_tests=_panel_tests(corpus, own_labs, cfg.train_labs))
+    settings["template_chirality_doubt"] = round(mixed_handedness_rate([w for w in corpus if w.lab in cfg.train_labs]), 3)
+    log(f"calibrate: template_chirality_doubt {settings['template_chirality_doubt']} "
+        "(how often two worms of a training lab differ in handedness, by their names)")
     meta = json.loads(out.with_suffix(".json").read_text())
     meta.update(extra or {})
     meta.update(inference=settings, calibration_minutes=round((time.time() - start) / 60, 1))
@@ -525,6 +528,23 @@ def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, extra:
         handle.write(json.dumps(meta, indent=2))
     log(f"calibrated inference settings: {settings}")
     return settings
+
+
+def mixed_handedness_rate(worms: list[Worm]) -> float:
+    """How often a template and a test of the same lab differ in handedness, over these worms'
+    labs (ordered pairs within each lab; each worm's handedness from its names, relative to an
+    atlas of all of them). With a template, ``fdlc label`` keeps the template's handedness
+    unless told otherwise (the model's preference is noise on a lab it has not seen), so this
+    is how often its names come out left/right swapped: the weight the answer reported gives
+    the other handedness (``template_chirality_doubt``). The validation pairs cannot fit it:
+    with two worms per lab they rarely differ (KK's fold fitted 0)."""
+    atlas = build_atlas(worms)
+    differing = total = 0
+    for lab in sorted({w.lab for w in worms}):
+        flags = [mirrored_relative_to(atlas, w.table) for w in worms if w.lab == lab]
+        n, k = len(flags), sum(flags)
+        differing, total = differing + 2 * k * (n - k), total + n * (n - 1)
+    return differing / total if total else 0.0
 
 
 def _panel_tests(corpus: list[Worm], val_pairs: dict[str, list], train_labs) -> dict[str, tuple]:
