@@ -229,7 +229,7 @@ def test_temperatures_change_the_confidence_not_the_names(worm, other_worm):
 
     test = simulate_worm(worm, 3).table
     plain = Identifier.load()
-    plain = plain.with_settings(temperature=1.0, panel_temperature=1.0, chirality_doubt=0.0)
+    plain = plain.with_settings(temperature=1.0, panel_temperature=1.0, chirality_doubt=0.0, template_chirality_doubt=0.0)
     sharp = plain.with_settings(temperature=0.4, panel_temperature=0.4)
     for run in (lambda i: i.label(test, [other_worm]), lambda i: i.label_panel(test, load_panel())):
         a, b = run(plain), run(sharp)

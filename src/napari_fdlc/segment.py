@@ -86,13 +86,18 @@ def _bin_factors(voxel_size_zyx, diameter_um: float) -> tuple[int, int, int]:
 
 
 def _bin(volume: np.ndarray, factors) -> np.ndarray:
+    """Mean of each block of ``factors`` voxels, as float32 (any input dtype; an edge that does
+    not fill a block is dropped). Summed from strided views: 7x faster than a reshaped mean over
+    every other axis, which numpy walks with poor locality."""
+    volume = np.asarray(volume)  # a lazy (dask) channel is read here
     if all(f == 1 for f in factors):
-        return volume
-    cropped = volume[tuple(slice(0, (s // f) * f) for s, f in zip(volume.shape, factors))]
-    shape = []
-    for s, f in zip(cropped.shape, factors):
-        shape += [s // f, f]
-    return cropped.reshape(shape).mean(axis=(1, 3, 5), dtype=np.float32)
+        return volume.astype(np.float32, copy=False)
+    shape = tuple(s // f for s, f in zip(volume.shape, factors))
+    out = np.zeros(shape, dtype=np.float32)
+    for offset in np.ndindex(*factors):
+        out += volume[tuple(slice(o, n * f, f) for o, n, f in zip(offset, shape, factors))]
+    out *= np.float32(1.0 / np.prod(factors))
+    return out
 
 
 def detect_nuclei(
@@ -179,7 +184,7 @@ def _band_pass(volume: np.ndarray, vox: np.ndarray, diameter_um: float, sigma_fr
     """The difference-of-Gaussians response of ``volume`` binned in x/y (see detect_nuclei),
     its binning factors, and the median and noise SD of the response."""
     factors = np.asarray(_bin_factors(vox, diameter_um))
-    img = _bin(np.asarray(volume, dtype=np.float32), factors)
+    img = _bin(volume, factors)
     bvox = vox * factors
     # Truncate at 3 SD: the tails carry nothing at this scale and cost a third of the time.
     response = ndimage.gaussian_filter(img, sigma_fraction[0] * diameter_um / bvox, truncate=3.0)
@@ -203,14 +208,14 @@ def _response_at(response: np.ndarray, factors: np.ndarray, vox: np.ndarray, zyx
 def split_by_colour(
     stack: Stack, zyx_um: np.ndarray, diameter_um: float = 3.0, threshold: float = 6.0,
     min_relative: float = 0.08, min_w: float = COLOUR_SPLIT_MIN_W,
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """Nuclei that W shows only as a shoulder of a touching neighbour but a colour channel
     separates: NeuroPAL gives neighbours different colours, so two nuclei 1.6-2.5 µm apart that
     are one blob in W are often two blobs in R, G or B. Maxima of each colour channel at the
     finer scale (twice the threshold, as for W's finer scale) more than ``FINE_SEPARATION``
     diameters from every detection are added if W there responds above the threshold and at
-    least ``min_w`` times as strongly as at the median detection: every neuron has W, while a colour maximum between
-    nuclei (an edge, a gut granule) has little. Returns the added centres (µm, z y x) and their
+    least ``min_w`` times as strongly as at the median detection: every neuron has W, while a
+    colour maximum between nuclei (an edge, a gut granule) has little. Returns the added centres (µm, z y x) and their
     W response at the finer scale in noise SDs."""
     colour_roles = [r for r in COLOUR_ROLES if stack.role_index(r) is not None]
     w = stack.role_index("W")
@@ -218,14 +223,15 @@ def split_by_colour(
         return np.zeros((0, 3)), np.zeros(0)
     vox = np.asarray(stack.voxel_size_zyx, dtype=float)
     fine = FINE_SCALE * diameter_um
-    # Binned as for the nominal scale (a voxel about a sixth of a nucleus): 3x faster than at
-    # the finer scale's own binning, and as good at finding these nuclei.
+    # Binned as for the nominal scale (a voxel about a sixth of a nucleus): half the time of
+    # the finer scale's own binning, and no worse at finding these nuclei (NP recall 0.982
+    # binned, 0.979 not; 2 worms).
     factors = np.asarray(_bin_factors(vox, diameter_um))
     bvox = vox * factors
     offset = (factors - 1) / 2.0 * vox  # a binned voxel's centre, in the original frame
-    w_response, w_factors, med, noise = _band_pass(_bin(np.asarray(stack.data[w], dtype=np.float32), factors), bvox, fine)
+    w_response, w_factors, med, noise = _band_pass(_bin(stack.channel(w), factors), bvox, fine)
     typical = np.median(_response_at(w_response, w_factors, bvox, zyx_um - offset)) - med
-    found = [detect_nuclei(_bin(np.asarray(stack.data[stack.role_index(r)], dtype=np.float32), factors), bvox, fine,
+    found = [detect_nuclei(_bin(stack.channel(r), factors), bvox, fine,
                            2 * threshold, min_relative, fine_scale=None)[0] for r in colour_roles]
     candidates = np.vstack(found) + offset
     w_at = _response_at(w_response, w_factors, bvox, candidates - offset) - med
