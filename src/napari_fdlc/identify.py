@@ -78,6 +78,8 @@ class InferenceSettings:
     # With a template: the same, for the probabilities reported (the names stay the chosen
     # chirality's). A whole worm named in the wrong handedness has its left/right pairs swapped
     # and came out as confident as a right one (KK, SK1 pairs: 5-10 % top-1 at confidence 0.7-0.8).
+    # Counted, not fitted: how often two worms of a training lab differ in handedness
+    # (train.mixed_handedness_rate).
     template_chirality_doubt: float = 0.0
     panel_temperature: float = 1.0  # panel: on the averaged answer (fitted on training labs)
     # With a template: the weight of the atlas's own answer (registration posterior, no model)
@@ -442,7 +444,7 @@ class Identifier:
                     probs: np.ndarray, others: list[np.ndarray], use_colour: bool, atlas: Atlas | None) -> np.ndarray:
         """The probabilities reported with a template: the chosen chirality's answer mixed with
         the other chirality's (each template's best placement in the other handedness, joined
-        with the atlas in that handedness), at the fitted ``template_chirality_doubt``. Positions
+        with the atlas in that handedness), at ``template_chirality_doubt``. Positions
         and colours barely tell a worm from its mirror image, so a name is trusted only as much
         as the handedness it was given in."""
         # The same templates' names: the same columns as ``probs``.

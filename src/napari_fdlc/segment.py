@@ -215,8 +215,8 @@ def split_by_colour(
     finer scale (twice the threshold, as for W's finer scale) more than ``FINE_SEPARATION``
     diameters from every detection are added if W there responds above the threshold and at
     least ``min_w`` times as strongly as at the median detection: every neuron has W, while a
-    colour maximum between nuclei (an edge, a gut granule) has little. Returns the added centres (µm, z y x) and their
-    W response at the finer scale in noise SDs."""
+    colour maximum between nuclei (an edge, a gut granule) has little. Returns the added
+    centres (µm, z y x) and their W response at the finer scale in noise SDs."""
     colour_roles = [r for r in COLOUR_ROLES if stack.role_index(r) is not None]
     w = stack.role_index("W")
     if w is None or not colour_roles or len(zyx_um) == 0:
