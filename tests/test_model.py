@@ -113,8 +113,10 @@ def test_any_neuron_count(identifier, other_worm, n):
 
     rng = np.random.default_rng(n)
     test = NeuronTable(rng.normal(size=(n, 3)) * [40, 10, 8], {c: rng.random(n) for c in "RGB"})
-    joined = identifier.with_settings(atlas_weight=1.0).label(test, [other_worm], atlas=load_atlas())
+    joined = identifier.with_settings(atlas_weight=1.0, template_chirality_doubt=0.2).label(
+        test, [other_worm], atlas=load_atlas())
     assert len(joined.auto_id) == n and joined.info["atlas"]
+    assert np.all(joined.probs.sum(1) <= 1 + 1e-6)
     result = identifier.label(test, [other_worm])
     assert len(result.auto_id) == n
     assert np.all(result.probs.sum(1) <= 1 + 1e-6)
