@@ -537,7 +537,7 @@ def mixed_handedness_rate(worms: list[Worm]) -> float:
     unless told otherwise (the model's preference is noise on a lab it has not seen), so this
     is how often its names come out left/right swapped: the weight the answer reported gives
     the other handedness (``template_chirality_doubt``). The validation pairs cannot fit it:
-    with two worms per lab they rarely differ (KK's fold fitted 0)."""
+    6 per lab, they rarely differ in handedness (KK's fold fitted 0)."""
     atlas = build_atlas(worms)
     differing = total = 0
     for lab in sorted({w.lab for w in worms}):
