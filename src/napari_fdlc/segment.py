@@ -207,7 +207,7 @@ def _response_at(response: np.ndarray, factors: np.ndarray, vox: np.ndarray, zyx
 
 def split_by_colour(
     stack: Stack, zyx_um: np.ndarray, diameter_um: float = 3.0, threshold: float = 6.0,
-    min_relative: float = 0.08, min_w: float = COLOUR_SPLIT_MIN_W,
+    min_relative: float = 0.08, min_w: float = COLOUR_SPLIT_MIN_W, w_volume: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Nuclei that W shows only as a shoulder of a touching neighbour but a colour channel
     separates: NeuroPAL gives neighbours different colours, so two nuclei 1.6-2.5 µm apart that
@@ -216,7 +216,9 @@ def split_by_colour(
     diameters from every detection are added if W there responds above the threshold and at
     least ``min_w`` times as strongly as at the median detection: every neuron has W, while a
     colour maximum between nuclei (an edge, a gut granule) has little. Returns the added
-    centres (µm, z y x) and their W response at the finer scale in noise SDs."""
+    centres (µm, z y x) and their W response at the finer scale in noise SDs. ``w_volume``: the
+    W channel already read (segment_stack's detection image), so that a stack on disk is not
+    read for it again."""
     colour_roles = [r for r in COLOUR_ROLES if stack.role_index(r) is not None]
     w = stack.role_index("W")
     if w is None or not colour_roles or len(zyx_um) == 0:
@@ -229,7 +231,7 @@ def split_by_colour(
     factors = np.asarray(_bin_factors(vox, diameter_um))
     bvox = vox * factors
     offset = (factors - 1) / 2.0 * vox  # a binned voxel's centre, in the original frame
-    w_response, w_factors, med, noise = _band_pass(_bin(stack.channel(w), factors), bvox, fine)
+    w_response, w_factors, med, noise = _band_pass(_bin(stack.channel(w) if w_volume is None else w_volume, factors), bvox, fine)
     typical = np.median(_response_at(w_response, w_factors, bvox, zyx_um - offset)) - med
     found = [detect_nuclei(_bin(stack.channel(r), factors), bvox, fine,
                            2 * threshold, min_relative, fine_scale=None)[0] for r in colour_roles]
@@ -428,7 +430,7 @@ def segment_stack(
     )
     if colour_split:
         _report(progress, 0.7, "separating touching nuclei by colour")
-        added, added_score = split_by_colour(stack, zyx, diameter_um, threshold, min_relative)
+        added, added_score = split_by_colour(stack, zyx, diameter_um, threshold, min_relative, w_volume=volume)
         zyx, score = np.vstack([zyx, added]), np.concatenate([score, added_score])
     _report(progress, 0.85, "reading colours")
     xyz = zyx[:, ::-1]
