@@ -217,7 +217,7 @@ def main(argv=None) -> int:
             "| CPD tracking ÷ latency | peak Python memory, MB |")
     sep = "|---|---|---|---|---|---|"
     if "cuda" in devices:
-        head = head[:-1] + " GPU latency, ms | GPU batched, volumes/s |"
+        head += " GPU latency, ms | GPU batched, volumes/s |"
         sep += "---|---|"
     print(head)
     print(sep)

@@ -182,3 +182,26 @@ def test_mixed_handedness_rate_counts_pairs_of_a_lab_that_differ():
               Worm("B", "5", generate_worm(seed=5))]
     assert mixed_handedness_rate(worms) == pytest.approx(6 / 14)
     assert mixed_handedness_rate(worms[:3]) == 0.0
+
+
+def test_worker_processes_make_the_same_batches_for_the_same_seed():
+    """``workers`` moves example making into other processes: batches come padded as the
+    training step expects them, and the stream is fixed by the seed and the worker count."""
+    from napari_fdlc.corpus import Worm
+    from napari_fdlc.train import training_batches
+
+    worms = [Worm("lab", f"w{k}", generate_worm(seed=k)) for k in range(4)]
+    cfg = TrainConfig(batch_size=3, workers=1, seed=5)
+
+    def first_two():
+        stream = training_batches(worms, cfg, None, np.random.default_rng(0))
+        return [next(stream) for _ in range(2)]
+
+    one, two = first_two(), first_two()
+    for batch_one, batch_two in zip(one, two):
+        a, t, am, tm, target, negative, ac, tc = batch_one
+        assert a.shape[0] == t.shape[0] == target.shape[0] == 3
+        assert am.any() and tm.any() and (target[tm] >= -1).all()
+        for x, y in zip(batch_one, batch_two):
+            assert torch.equal(x, y)
+    assert not torch.equal(one[0][1], one[1][1])  # a stream, not one batch repeated

@@ -98,6 +98,9 @@ def _train_parser(sub) -> None:
     p.add_argument("--stop-at", type=int, default=None, help="stop after this step (the LR schedule still spans --steps)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
     p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes that make training examples (worth it beside a GPU; default 0)")
+    p.add_argument("--device", default=None, help="torch device (default: cuda when present, else cpu)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint at --out")
     p.add_argument("--init-from", help="start from these weights (path without suffix; keys that fit)")
     p.add_argument("--colour-input", action="store_true", help="give the model NeuroPAL colour as an input")
@@ -114,7 +117,8 @@ def _run_train(args) -> int:
 
     cfg = TrainConfig.from_json(args.config) if args.config else TrainConfig()
     given = {"corpus": args.corpus, "threads": args.threads, "time_limit_min": args.minutes,
-             "init_from": args.init_from, "stop_at": args.stop_at}
+             "init_from": args.init_from, "stop_at": args.stop_at, "workers": args.workers,
+             "device": args.device}
     for key, value in given.items():
         if value is not None:
             setattr(cfg, key, value)

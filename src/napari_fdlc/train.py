@@ -71,6 +71,10 @@ class TrainConfig:
     # One thread: on a shared 2-core machine, two torch threads fighting another process made a
     # step 25x slower (7.4 s vs 0.29 s measured); small matrices gain little from threads anyway.
     threads: int | None = 1
+    # Processes that make training examples beside the one that steps the model: with a GPU the
+    # step is cheap and making the examples (crops, simulator, registration) is what takes the time.
+    # 0 makes them in the training process. The stream of examples depends on ``seed`` and this.
+    workers: int = 0
     device: str | None = None
     model: dict = field(default_factory=dict)
     out: str = "runs/model"
@@ -305,6 +309,33 @@ def collate(examples, torch, colour_dropout: float = 0.0, rng=None):
     return a, t, am, tm, target, negative, ac, tc
 
 
+def _batch(worms, cfg, atlas, rng, torch):
+    examples = [sample_example(worms, rng, cfg, atlas) for _ in range(cfg.batch_size)]
+    return collate(examples, torch, cfg.colour_dropout, rng)
+
+
+def training_batches(worms: list[Worm], cfg: TrainConfig, atlas, rng, first_step: int = 1):
+    """Batches for steps ``first_step``.. from the training process's ``rng``, or with
+    ``cfg.workers`` from that many processes (each seeded by seed, first step and its id)."""
+    import torch
+
+    if cfg.workers <= 0:
+        while True:
+            yield _batch(worms, cfg, atlas, rng, torch)
+
+    class ExampleStream(torch.utils.data.IterableDataset):  # endless batches of one worker
+        def __iter__(self):
+            rng = np.random.default_rng([cfg.seed, first_step, torch.utils.data.get_worker_info().id])
+            while True:
+                yield _batch(worms, cfg, atlas, rng, torch)
+
+    # Workers need no torch threads of their own: they make examples with numpy.
+    loader = torch.utils.data.DataLoader(ExampleStream(), batch_size=None, num_workers=cfg.workers,
+                                         worker_init_fn=lambda _: torch.set_num_threads(1),
+                                         prefetch_factor=4, persistent_workers=True)
+    yield from loader
+
+
 def split_worms(worms: list[Worm], cfg: TrainConfig, rng) -> tuple[list[Worm], dict[str, list[Worm]]]:
     """Training worms from the training labs; validation worms per lab (held-out labs whole,
     a few worms of each training lab)."""
@@ -452,12 +483,11 @@ def train(cfg: TrainConfig, log=print) -> dict:
         sched.step()  # the learning-rate schedule continues where it stopped
     from tqdm import tqdm
 
+    batches = training_batches(train_worms, cfg, atlas, rng, first_step)
     progress = tqdm(range(first_step, cfg.steps + 1), desc="training", unit="step", disable=not sys.stderr.isatty())
     for step in progress:
         model.train()
-        examples = [sample_example(train_worms, rng, cfg, atlas) for _ in range(cfg.batch_size)]
-        batch = collate(examples, torch, cfg.colour_dropout, rng)
-        a, t, am, tm, target, negative, ac, tc = (x.to(device) for x in batch)
+        a, t, am, tm, target, negative, ac, tc = (x.to(device) for x in next(batches))
         colour = model.config["colour_channels"] > 0
         log_p = model(a, t, am, tm, ac if colour else None, tc if colour else None)
         loss = matching_loss(log_p, target, negative)
