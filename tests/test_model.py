@@ -315,3 +315,18 @@ def test_the_atlas_joins_a_template_only_when_weighted_and_when_it_knows_the_nam
     # A template whose names the atlas does not know cannot say its handedness: no atlas.
     renamed = NeuronTable(worm.xyz, worm.colours, np.array([f"X{i}" for i in range(len(worm))], dtype=object))
     assert not weighted.label(other_worm, [renamed], atlas=atlas).info["atlas"]
+
+
+def test_a_small_test_keeps_twice_the_registration_starts(identifier, worm, other_worm):
+    """Fewer neurons rank the registration's starts less reliably and cost the model little:
+    a test under SMALL_TEST neurons keeps 2 × KEPT_STARTS placements per chirality."""
+    from napari_fdlc.identify import KEPT_STARTS, SMALL_TEST
+
+    small = other_worm.subset(np.arange(SMALL_TEST - 40))
+    big = other_worm.subset(np.arange(min(len(other_worm), SMALL_TEST + 20)))
+    assert len(big) >= SMALL_TEST
+    _, starts, mirrored, _ = identifier.place(worm, [small, big])
+    assert [len(s) for s in starts] == [4 * KEPT_STARTS, 2 * KEPT_STARTS]  # both chiralities on auto
+    assert mirrored[0].sum() == 2 * KEPT_STARTS and mirrored[1].sum() == KEPT_STARTS
+    one = identifier.with_chirality("same").place(worm, [small])[1][0]
+    assert len(one) == 2 * KEPT_STARTS

@@ -62,6 +62,13 @@ class TrainConfig:
     registered_fraction: float = 0.0
     panel_fraction: float = 0.0
     colour_dropout: float = 0.3  # pairs shown without colour, so --no-color uses the same weights
+    # Real worms' augmentation (what differs between labs): scale per axis (± fraction), and
+    # colour as another lab's filters and readout might give it: each channel's z-scores mixed
+    # with the others' (bleed-through, off-diagonal weights uniform in 0..colour_mixing) plus
+    # noise (SD in z-score units). The shipped recipe uses 0.08, 0 and 0.
+    scale_jitter: float = 0.08
+    colour_mixing: float = 0.0
+    colour_noise: float = 0.0
     max_neurons: int = 112  # crop bigger worms to a window along the body axis (CPU cost ~ N^2)
     seed: int = 0
     eval_every: int = 250
@@ -124,8 +131,10 @@ class TrainConfig:
 TRAIN_SIM = SimulationParams(transverse_rotation=0.15 * np.pi)
 
 
-def _augment(table: NeuronTable, rng: np.random.Generator) -> NeuronTable:
-    """Field-of-view crop along the body axis, drops, noise, scale: what differs between labs."""
+def _augment(table: NeuronTable, rng: np.random.Generator, cfg: TrainConfig | None = None) -> NeuronTable:
+    """Field-of-view crop along the body axis, drops, noise, scale, colour mixing: what differs
+    between labs (``cfg``'s magnitudes; defaults without it)."""
+    cfg = cfg or TrainConfig()
     canon, _, _ = canonical_frame(table.xyz)
     keep = np.ones(len(table), bool)
     if rng.random() < 0.4:
@@ -136,8 +145,15 @@ def _augment(table: NeuronTable, rng: np.random.Generator) -> NeuronTable:
     if keep.sum() < 8:
         keep[:] = True
     t = table.subset(np.flatnonzero(keep))
-    xyz = t.xyz * (1 + rng.uniform(-0.08, 0.08, 3)) + rng.normal(0, 0.4, t.xyz.shape)
-    return NeuronTable(xyz, t.colours, t.labels, t.label_conf, source=t.source)
+    xyz = t.xyz * (1 + rng.uniform(-cfg.scale_jitter, cfg.scale_jitter, 3)) + rng.normal(0, 0.4, t.xyz.shape)
+    colours = t.colours
+    if (cfg.colour_mixing or cfg.colour_noise) and all(c in colours for c in IDENTITY_CHANNELS):
+        rgb = np.column_stack([colours[c] for c in IDENTITY_CHANNELS]).astype(float)
+        rgb = (rgb - rgb.mean(axis=0)) / (rgb.std(axis=0) + 1e-9)
+        mixing = np.eye(3) + rng.uniform(0, cfg.colour_mixing, (3, 3)) * (1 - np.eye(3))
+        rgb = rgb @ mixing.T + rng.normal(0, cfg.colour_noise, rgb.shape)
+        colours = {**colours, **dict(zip(IDENTITY_CHANNELS, rgb.T))}
+    return NeuronTable(xyz, colours, t.labels, t.label_conf, source=t.source)
 
 
 def _crop(table: NeuronTable, max_neurons: int, rng) -> NeuronTable:
@@ -229,13 +245,13 @@ def sample_example(worms: list[Worm], rng, cfg: TrainConfig, atlas=None):
             test = synth.table
         elif atlas is not None and u < cfg.synthetic_fraction + cfg.panel_fraction:
             template = atlas_worm(atlas, rng)  # whole, like the panel's templates
-            test = _crop(_augment(worms[rng.integers(len(worms))].table, rng), cfg.max_neurons, rng)
+            test = _crop(_augment(worms[rng.integers(len(worms))].table, rng, cfg), cfg.max_neurons, rng)
             target = _targets(template, test)
             placement = {"atlas": atlas}
         else:
             i, j = rng.choice(len(worms), 2, replace=False)
-            template = _crop(_augment(worms[i].table, rng), cfg.max_neurons, rng)
-            test = _crop(_augment(worms[j].table, rng), cfg.max_neurons, rng)
+            template = _crop(_augment(worms[i].table, rng, cfg), cfg.max_neurons, rng)
+            test = _crop(_augment(worms[j].table, rng, cfg), cfg.max_neurons, rng)
             target = _targets(template, test)
             placement = {"registered": rng.random() < cfg.registered_fraction}
         example = make_example(template, test, target, rng, cfg, **placement)
