@@ -345,10 +345,18 @@ def training_batches(worms: list[Worm], cfg: TrainConfig, atlas, rng, first_step
             while True:
                 yield _batch(worms, cfg, atlas, rng, torch)
 
+    import multiprocessing
+
+    from .errors import FdlcError
+
+    # The workers inherit the worms and this function's closures by fork (nothing is pickled).
+    if "fork" not in multiprocessing.get_all_start_methods():
+        raise FdlcError("--workers needs processes started by fork (Linux, macOS): use --workers 0")
     # Workers need no torch threads of their own: they make examples with numpy.
     loader = torch.utils.data.DataLoader(ExampleStream(), batch_size=None, num_workers=cfg.workers,
                                          worker_init_fn=lambda _: torch.set_num_threads(1),
-                                         prefetch_factor=4, persistent_workers=True)
+                                         prefetch_factor=4, persistent_workers=True,
+                                         multiprocessing_context="fork")
     yield from loader
 
 
