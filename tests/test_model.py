@@ -330,3 +330,29 @@ def test_a_small_test_keeps_twice_the_registration_starts(identifier, worm, othe
     assert mirrored[0].sum() == 2 * KEPT_STARTS and mirrored[1].sum() == KEPT_STARTS
     one = identifier.with_chirality("same").place(worm, [small])[1][0]
     assert len(one) == 2 * KEPT_STARTS
+
+
+def test_the_atlas_answer_joins_the_panel_at_its_weight(identifier, other_worm, monkeypatch):
+    """At ``panel_atlas_weight`` w the panel's answer (what names are assigned on) is its
+    templates' average times the atlas's posterior at the test's placement, raised to w; at 0
+    it is the average alone. With an untrained model the atlas is the better namer."""
+    import napari_fdlc.identify as identify
+    from napari_fdlc.reference import load_panel
+    from napari_fdlc.register import posterior
+
+    panel = load_panel()
+    seen = []
+    real = identify.make_labelling
+    monkeypatch.setattr(identify, "make_labelling", lambda names, probs, *a, assign_probs=None, **k: (
+        seen.append((names, assign_probs)), real(names, probs, *a, assign_probs=assign_probs, **k))[1])
+    same = identifier.with_settings(chirality="same", chirality_doubt=0.0)
+    alone = same.label_panel(other_worm, panel)
+    joined = same.with_settings(panel_atlas_weight=1.0).label_panel(other_worm, panel)
+    (names, average), (_, product) = seen
+    placement = panel.atlas.register(other_worm, True, (False,))[0]
+    resp, none = posterior(other_worm, panel.atlas.mixture(), placement.xyz, True)
+    expected = identify._times(average, identify._in_names(resp, none, panel.atlas.names, names), 1.0)
+    assert np.allclose(product, expected)
+    truth = other_worm.labels
+    hits = [np.mean([a == t for a, t in zip(r.auto_id, truth) if t]) for r in (alone, joined)]
+    assert hits[1] > hits[0] + 0.05

@@ -29,7 +29,7 @@ from . import colour as colour_model
 from .errors import FdlcError, ModelError, warn
 from .geometry import CHIRALITIES, apply_affine, compose_affine, fit_affine, mirrored_by_names
 from .match import Labelling, make_labelling, name_probabilities
-from .register import register, template_mixture
+from .register import posterior, register, template_mixture
 from .table import NeuronTable
 
 if TYPE_CHECKING:
@@ -91,6 +91,10 @@ class InferenceSettings:
     # Fitted on training labs, each scored with an atlas built without it.
     atlas_weight: float = 0.0
     atlas_weight_position: float = 0.0
+    # The panel: the same, the atlas's answer at the test's placement in the atlas frame
+    # multiplied into the panel's average (its templates are samples of the atlas, the
+    # posterior weighs every name's own spread and colour). Fitted on training labs; 0 = off.
+    panel_atlas_weight: float = 0.0
     no_match_weight: float = 0.2  # see match.assign
 
     @classmethod
@@ -482,19 +486,12 @@ class Identifier:
         """The atlas's answer for the test in the template's names: (N, names + 1), the last
         column "none". A template is labelled, so its names give its handedness relative to the
         atlas, and with the model's choice for the test relative to the template, the test's
-        (None when the template shares fewer than 4 names with the atlas). A name the atlas
-        lacks gets the neuron's mean over the names it knows: no opinion."""
+        (None when the template shares fewer than 4 names with the atlas; see :func:`_in_names`)."""
         template_mirrored = mirrored_by_names(atlas.names, atlas.mean, template, min_names=4)
         if template_mirrored is None:
             return None
         resp, none = atlas.posterior(test, use_colour, mirrored=bool(template_mirrored) != bool(mirrored_to_template))
-        column = {n: i for i, n in enumerate(atlas.names)}
-        known = np.array([n in column for n in names])
-        out = np.empty((len(test), len(names) + 1))
-        out[:, :-1][:, known] = resp[:, [column[n] for n, k in zip(names, known) if k]]
-        out[:, :-1][:, ~known] = out[:, :-1][:, known].mean(axis=1, keepdims=True) if known.any() else 1.0
-        out[:, -1] = none
-        return out
+        return _in_names(resp, none, atlas.names, names)
 
     def label_panel(self, test: NeuronTable, panel: Panel, use_colour: bool = True, fixed: dict[int, str] | None = None) -> Labelling:
         """Names from the built-in panel. The test is placed in the atlas frame once per
@@ -540,17 +537,26 @@ class Identifier:
         # the deciding templates; none once a fixed name decided: its answer is mostly the same
         # names with left and right swapped, so the doubt lands on the partner) and get the
         # panel's temperature; both fitted for calibration.
+        weight = self.settings.panel_atlas_weight
+
+        def with_atlas(names, probs, placement):  # times the atlas's answer at that placement
+            if weight <= 0:
+                return probs
+            resp, none = posterior(test, panel.atlas.mixture(), placement.xyz, use_colour)
+            return _times(probs, _in_names(resp, none, panel.atlas.names, names), weight)
+
         names, chosen = names_and_probs(answers)
-        probs = chosen
+        probs = chosen = with_atlas(names, chosen, placements[best])
         doubt = self.settings.chirality_doubt if agreement is None and len(placements) == 2 else 0.0
         if doubt:
             other_names, other_probs = names_and_probs([lps[1 - best] for lps in first])
+            other_probs = with_atlas(other_names, other_probs, placements[1 - best])
             other = {n: other_probs[:, i] for i, n in enumerate(other_names)}
             probs = (1 - doubt) * chosen + doubt * np.stack([other.get(n, np.zeros(len(test))) for n in names], axis=1)
         probs = _sharpen(probs, self.settings.panel_temperature)
         info = {"colour": use_colour, "mirrored": placements[best].mirrored, "willingness": willingness.tolist()}
         return make_labelling(names, probs, fixed, info, self.settings.no_match_weight,
-                              assign_probs=names_and_probs(answers, calibrated=False)[1])
+                              assign_probs=with_atlas(names, names_and_probs(answers, calibrated=False)[1], placements[best]))
 
     def label_panel_many(self, tests: list[NeuronTable], panel: Panel, use_colour: bool = True,
                          first: list[Labelling] | None = None) -> list[Labelling]:
@@ -614,6 +620,18 @@ def _log_softmax_rows(x: np.ndarray) -> np.ndarray:
     time (its overhead showed in every tracked volume)."""
     top = x.max(axis=1, keepdims=True)
     return x - (top + np.log(np.exp(x - top).sum(axis=1, keepdims=True)))
+
+
+def _in_names(resp: np.ndarray, none: np.ndarray, atlas_names, names: list[str]) -> np.ndarray:
+    """The atlas's answer (N, atlas names) and (N,) none as (N, names + 1), the last column
+    "none". A name the atlas lacks gets the neuron's mean over the names it knows: no opinion."""
+    column = {n: i for i, n in enumerate(atlas_names)}
+    known = np.array([n in column for n in names], dtype=bool)
+    out = np.empty((len(resp), len(names) + 1))
+    out[:, :-1][:, known] = resp[:, [column[n] for n, k in zip(names, known) if k]]
+    out[:, :-1][:, ~known] = out[:, :-1][:, known].mean(axis=1, keepdims=True) if known.any() else 1.0
+    out[:, -1] = none
+    return out
 
 
 def _times(probs: np.ndarray, answer: np.ndarray, weight: float) -> np.ndarray:

@@ -622,7 +622,8 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
     the expected calibration error of ``auto_conf``. With ``panel_tests`` (see _panel_tests),
     the weights of the atlas's own answer beside a template (top-1, each lab's pairs with an
     atlas built without it) and the panel's temperature and chirality doubt (calibration
-    error). The prior against a mirrored placement is not fitted (identify.MIRROR_PRIOR)."""
+    error), and the weight of the atlas's answer in the panel (top-1). The prior against a
+    mirrored placement is not fitted (identify.MIRROR_PRIOR)."""
     # Every setting fitted here acts after the registrations and the model's forward passes:
     # compute those once (instance attributes shadow the methods until the end).
     cache = {}
@@ -668,7 +669,7 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
     # that calibrating twice gives the same settings (each choice below depends on the others).
     defaults = type(settings)()
     for name in ("no_match_weight", "colour_weight", "atlas_weight", "atlas_weight_position", "temperature",
-                 "chirality_doubt", "panel_temperature"):
+                 "chirality_doubt", "panel_temperature", "panel_atlas_weight"):
         setattr(settings, name, getattr(defaults, name))
 
     def choose(name, values, score):
@@ -697,6 +698,10 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
         return scores
 
     if panel_tests:
+        # the atlas's answer in the panel (top-1, position only and with colour; each lab's
+        # tests against a panel and atlas built without it)
+        choose("panel_atlas_weight", (0.0, 0.25, 0.5, 1.0),
+               lambda: np.mean([run_panel(c).summary()["top1"] for c in (False, True)]))
         # temperature and doubt interact: a joint grid
         grid = [(d, t) for d in (0.0, 0.15, 0.3) for t in (0.25, 0.35, 0.5, 0.7, 1.0, 1.4)]
         results = []
