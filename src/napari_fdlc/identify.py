@@ -93,8 +93,10 @@ class InferenceSettings:
     atlas_weight_position: float = 0.0
     # The panel: the same, the atlas's answer at the test's placement in the atlas frame
     # multiplied into the panel's average (its templates are samples of the atlas, the
-    # posterior weighs every name's own spread and colour). Fitted on training labs; 0 = off.
+    # posterior weighs every name's own spread and colour), with colour and position only.
+    # Fitted on training labs; 0 = off.
     panel_atlas_weight: float = 0.0
+    panel_atlas_weight_position: float = 0.0
     no_match_weight: float = 0.2  # see match.assign
 
     @classmethod
@@ -537,7 +539,7 @@ class Identifier:
         # the deciding templates; none once a fixed name decided: its answer is mostly the same
         # names with left and right swapped, so the doubt lands on the partner) and get the
         # panel's temperature; both fitted for calibration.
-        weight = self.settings.panel_atlas_weight
+        weight = self.settings.panel_atlas_weight if use_colour else self.settings.panel_atlas_weight_position
 
         def with_atlas(names, probs, placement):  # times the atlas's answer at that placement
             if weight <= 0:

@@ -669,7 +669,7 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
     # that calibrating twice gives the same settings (each choice below depends on the others).
     defaults = type(settings)()
     for name in ("no_match_weight", "colour_weight", "atlas_weight", "atlas_weight_position", "temperature",
-                 "chirality_doubt", "panel_temperature", "panel_atlas_weight"):
+                 "chirality_doubt", "panel_temperature", "panel_atlas_weight", "panel_atlas_weight_position"):
         setattr(settings, name, getattr(defaults, name))
 
     def choose(name, values, score):
@@ -698,10 +698,20 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
         return scores
 
     if panel_tests:
-        # the atlas's answer in the panel (top-1, position only and with colour; each lab's
-        # tests against a panel and atlas built without it)
-        choose("panel_atlas_weight", (0.0, 0.25, 0.5, 1.0),
-               lambda: np.mean([run_panel(c).summary()["top1"] for c in (False, True)]))
+        # The atlas's answer in the panel (top-1; each lab's tests against a panel and atlas
+        # built without it). It names the test in the handedness chosen before it, so it is
+        # fitted with each test's handedness given (by its names): on `auto` a few wrongly
+        # chosen handedness among 2 worms per lab would decide it.
+        def run_panel_given(use_colour):
+            scores = Scores()
+            for panel, tests in panel_tests.values():
+                for test in tests:
+                    told = identifier.with_chirality("mirrored" if mirrored_relative_to(panel.atlas, test) else "same")
+                    scores.add(told.label_panel(test, panel, use_colour=use_colour), test, panel.names)
+            return scores
+
+        choose("panel_atlas_weight_position", (0.0, 0.25, 0.5, 1.0), lambda: run_panel_given(False).summary()["top1"])
+        choose("panel_atlas_weight", (0.0, 0.25, 0.5, 1.0), lambda: run_panel_given(True).summary()["top1"])
         # temperature and doubt interact: a joint grid
         grid = [(d, t) for d in (0.0, 0.15, 0.3) for t in (0.25, 0.35, 0.5, 0.7, 1.0, 1.4)]
         results = []
