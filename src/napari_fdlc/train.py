@@ -333,11 +333,18 @@ def _batch(worms, cfg, atlas, rng, torch):
 def training_batches(worms: list[Worm], cfg: TrainConfig, atlas, rng, first_step: int = 1):
     """Batches for steps ``first_step``.. from the training process's ``rng``, or with
     ``cfg.workers`` from that many processes (each seeded by seed, first step and its id)."""
+    import multiprocessing
+
     import torch
+
+    from .errors import FdlcError
 
     if cfg.workers <= 0:
         while True:
             yield _batch(worms, cfg, atlas, rng, torch)
+    # The workers inherit the worms and this function's closures by fork (nothing is pickled).
+    if "fork" not in multiprocessing.get_all_start_methods():
+        raise FdlcError("--workers needs processes started by fork (Linux, macOS): use --workers 0")
 
     class ExampleStream(torch.utils.data.IterableDataset):  # endless batches of one worker
         def __iter__(self):
@@ -345,19 +352,11 @@ def training_batches(worms: list[Worm], cfg: TrainConfig, atlas, rng, first_step
             while True:
                 yield _batch(worms, cfg, atlas, rng, torch)
 
-    import multiprocessing
-
-    from .errors import FdlcError
-
-    # The workers inherit the worms and this function's closures by fork (nothing is pickled).
-    if "fork" not in multiprocessing.get_all_start_methods():
-        raise FdlcError("--workers needs processes started by fork (Linux, macOS): use --workers 0")
     # Workers need no torch threads of their own: they make examples with numpy.
-    loader = torch.utils.data.DataLoader(ExampleStream(), batch_size=None, num_workers=cfg.workers,
-                                         worker_init_fn=lambda _: torch.set_num_threads(1),
-                                         prefetch_factor=4, persistent_workers=True,
-                                         multiprocessing_context="fork")
-    yield from loader
+    yield from torch.utils.data.DataLoader(ExampleStream(), batch_size=None, num_workers=cfg.workers,
+                                           worker_init_fn=lambda _: torch.set_num_threads(1),
+                                           prefetch_factor=4, persistent_workers=True,
+                                           multiprocessing_context="fork")
 
 
 def split_worms(worms: list[Worm], cfg: TrainConfig, rng) -> tuple[list[Worm], dict[str, list[Worm]]]:
