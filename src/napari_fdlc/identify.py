@@ -540,25 +540,27 @@ class Identifier:
         # names with left and right swapped, so the doubt lands on the partner) and get the
         # panel's temperature; both fitted for calibration.
         weight = self.settings.panel_atlas_weight if use_colour else self.settings.panel_atlas_weight_position
+        atlas_answers = {}  # placement index -> the atlas's posterior there, computed once
 
-        def with_atlas(names, probs, placement):  # times the atlas's answer at that placement
+        def with_atlas(names, probs, k):  # times the atlas's answer at placement k
             if weight <= 0:
                 return probs
-            resp, none = posterior(test, panel.atlas.mixture(), placement.xyz, use_colour)
-            return _times(probs, _in_names(resp, none, panel.atlas.names, names), weight)
+            if k not in atlas_answers:
+                atlas_answers[k] = posterior(test, panel.atlas.mixture(), placements[k].xyz, use_colour)
+            return _times(probs, _in_names(*atlas_answers[k], panel.atlas.names, names), weight)
 
         names, chosen = names_and_probs(answers)
-        probs = chosen = with_atlas(names, chosen, placements[best])
+        probs = chosen = with_atlas(names, chosen, best)
         doubt = self.settings.chirality_doubt if agreement is None and len(placements) == 2 else 0.0
         if doubt:
             other_names, other_probs = names_and_probs([lps[1 - best] for lps in first])
-            other_probs = with_atlas(other_names, other_probs, placements[1 - best])
+            other_probs = with_atlas(other_names, other_probs, 1 - best)
             other = {n: other_probs[:, i] for i, n in enumerate(other_names)}
             probs = (1 - doubt) * chosen + doubt * np.stack([other.get(n, np.zeros(len(test))) for n in names], axis=1)
         probs = _sharpen(probs, self.settings.panel_temperature)
         info = {"colour": use_colour, "mirrored": placements[best].mirrored, "willingness": willingness.tolist()}
         return make_labelling(names, probs, fixed, info, self.settings.no_match_weight,
-                              assign_probs=with_atlas(names, names_and_probs(answers, calibrated=False)[1], placements[best]))
+                              assign_probs=with_atlas(names, names_and_probs(answers, calibrated=False)[1], best))
 
     def label_panel_many(self, tests: list[NeuronTable], panel: Panel, use_colour: bool = True,
                          first: list[Labelling] | None = None) -> list[Labelling]:

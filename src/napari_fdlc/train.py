@@ -384,11 +384,16 @@ def _pair_scores(identifier, pairs, use_colour: bool, scores: Scores | None = No
     return scores
 
 
-def _panel_scores(identifier, panel, tests, use_colour: bool, scores: Scores | None = None) -> Scores:
-    """Each test named by the panel, scored as ``fdlc evaluate`` scores the panel."""
+def _panel_scores(identifier, panel, tests, use_colour: bool, scores: Scores | None = None,
+                  handedness_given: bool = False) -> Scores:
+    """Each test named by the panel, scored as ``fdlc evaluate`` scores the panel; with
+    ``handedness_given`` in the handedness its names give (relative to the panel's atlas)."""
     scores = scores if scores is not None else Scores()
     for test in tests:
-        scores.add(identifier.label_panel(test, panel, use_colour=use_colour), test, panel.names)
+        named_by = identifier
+        if handedness_given:
+            named_by = identifier.with_chirality("mirrored" if mirrored_relative_to(panel.atlas, test) else "same")
+        scores.add(named_by.label_panel(test, panel, use_colour=use_colour), test, panel.names)
     return scores
 
 
@@ -690,10 +695,10 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
     choose("temperature", (0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.5, 2.0, 3.0),
            lambda: -np.mean([run(c).summary()["ece"] for c in (False, True)]))
 
-    def run_panel(use_colour):
+    def run_panel(use_colour, handedness_given=False):
         scores = Scores()
         for panel, tests in panel_tests.values():
-            _panel_scores(identifier, panel, tests, use_colour, scores)
+            _panel_scores(identifier, panel, tests, use_colour, scores, handedness_given)
         return scores
 
     if panel_tests:
@@ -701,16 +706,8 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
         # built without it). It names the test in the handedness chosen before it, so it is
         # fitted with each test's handedness given (by its names): on `auto` a few wrongly
         # chosen handedness among 2 worms per lab would decide it.
-        def run_panel_given(use_colour):
-            scores = Scores()
-            for panel, tests in panel_tests.values():
-                for test in tests:
-                    told = identifier.with_chirality("mirrored" if mirrored_relative_to(panel.atlas, test) else "same")
-                    scores.add(told.label_panel(test, panel, use_colour=use_colour), test, panel.names)
-            return scores
-
-        choose("panel_atlas_weight_position", (0.0, 0.25, 0.5, 1.0), lambda: run_panel_given(False).summary()["top1"])
-        choose("panel_atlas_weight", (0.0, 0.25, 0.5, 1.0), lambda: run_panel_given(True).summary()["top1"])
+        choose("panel_atlas_weight_position", (0.0, 0.25, 0.5, 1.0), lambda: run_panel(False, True).summary()["top1"])
+        choose("panel_atlas_weight", (0.0, 0.25, 0.5, 1.0), lambda: run_panel(True, True).summary()["top1"])
         # temperature and doubt interact: a joint grid
         grid = [(d, t) for d in (0.0, 0.15, 0.3) for t in (0.25, 0.35, 0.5, 0.7, 1.0, 1.4)]
         results = []
