@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from napari_fdlc.errors import ModelError
+from napari_fdlc.errors import FdlcError, ModelError
 from napari_fdlc.identify import Identifier
 from napari_fdlc.model import CorrespondenceModel, load_model, matching_loss, save_model
 from napari_fdlc.table import NeuronTable
@@ -356,3 +356,30 @@ def test_the_atlas_answer_joins_the_panel_at_its_weight(identifier, other_worm, 
     truth = other_worm.labels
     hits = [np.mean([a == t for a, t in zip(r.auto_id, truth) if t]) for r in (alone, joined)]
     assert hits[1] > hits[0] + 0.05
+
+
+def test_the_templates_own_worm_gets_a_second_look_after_a_warp(worm, other_worm):
+    """A simulated copy of the template (its own worm, bent and jittered) is warped onto it
+    and looked at again with a position likelihood; another worm is left as it was."""
+    from napari_fdlc.identify import WARP_SAME_WORM_UM
+    from napari_fdlc.simulate import simulate_worm
+
+    shipped = Identifier.load()
+    plain = shipped.with_settings(warp_um=0.0)
+    copy = simulate_worm(worm, np.random.default_rng(4)).table
+
+    def top1(result, test):
+        return np.mean([a == t for a, t in zip(result.auto_id, test.labels) if t])
+
+    refined = shipped.label(copy, [worm], use_colour=False)
+    assert refined.info["templates"][0]["warp_rms_um"] <= WARP_SAME_WORM_UM
+    assert top1(refined, copy) >= max(0.98, top1(plain.label(copy, [worm], use_colour=False), copy) + 0.02)
+    other = shipped.label(other_worm, [worm])
+    assert other.info["templates"][0]["warp_rms_um"] > WARP_SAME_WORM_UM
+    assert np.array_equal(other.probs, plain.label(other_worm, [worm]).probs)
+
+
+def test_a_template_without_names_is_refused(identifier, worm, other_worm):
+    unnamed = NeuronTable(worm.xyz, worm.colours, np.full(len(worm), "", dtype=object))
+    with pytest.raises(FdlcError, match="named neuron"):
+        identifier.label(other_worm, [unnamed])

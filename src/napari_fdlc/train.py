@@ -266,7 +266,8 @@ def tracking_example(worms: list[Worm], rng, cfg: TrainConfig):
     That volume is 1 to ``stale_warp`` volumes back, so that the model also sees the larger
     residuals of a chain that lags. The template is the recording's first volume, the
     reference; targets are its rows."""
-    from .track import SequenceParams, TrackSettings, _geometric_step, _Reference, fit_warp, simulate_sequence
+    from .geometry import fit_warp
+    from .track import SequenceParams, TrackSettings, _geometric_step, _Reference, simulate_sequence
 
     table = _crop(worms[rng.integers(len(worms))].table, cfg.max_neurons, rng)
     t = int(rng.integers(1, cfg.frames_apart + 1))
