@@ -362,6 +362,7 @@ def test_the_templates_own_worm_gets_a_second_look_after_a_warp(worm, other_worm
     """A simulated copy of the template (its own worm, bent and jittered) is warped onto it
     and looked at again with a position likelihood; another worm is left as it was."""
     from napari_fdlc.identify import WARP_SAME_WORM_UM
+    from napari_fdlc.reference import load_atlas
     from napari_fdlc.simulate import simulate_worm
 
     shipped = Identifier.load()
@@ -371,12 +372,18 @@ def test_the_templates_own_worm_gets_a_second_look_after_a_warp(worm, other_worm
     def top1(result, test):
         return np.mean([a == t for a, t in zip(result.auto_id, test.labels) if t])
 
-    refined = shipped.label(copy, [worm], use_colour=False)
-    assert refined.info["templates"][0]["warp_rms_um"] <= WARP_SAME_WORM_UM
-    assert top1(refined, copy) >= max(0.98, top1(plain.label(copy, [worm], use_colour=False), copy) + 0.02)
-    other = shipped.label(other_worm, [worm])
-    assert other.info["templates"][0]["warp_rms_um"] > WARP_SAME_WORM_UM
-    assert np.array_equal(other.probs, plain.label(other_worm, [worm]).probs)
+    atlas = load_atlas()
+    refined = shipped.label(copy, [worm], use_colour=False, atlas=atlas)
+    seen = refined.info["templates"][0]
+    assert seen["same_worm"] and seen["warp_rms_um"] <= WARP_SAME_WORM_UM
+    first = plain.label(copy, [worm], use_colour=False, atlas=atlas)
+    assert top1(refined, copy) >= max(0.98, top1(first, copy) + 0.02)
+    # Its own worm settles the handedness and needs no atlas: no doubt caps the confidences.
+    assert not refined.info["atlas"] and first.info["atlas"]
+    assert np.median(refined.auto_conf) > 0.9 > np.median(first.auto_conf)
+    other = shipped.label(other_worm, [worm], atlas=atlas)
+    assert not other.info["templates"][0]["same_worm"] and other.info["templates"][0]["warp_rms_um"] > WARP_SAME_WORM_UM
+    assert np.array_equal(other.probs, plain.label(other_worm, [worm], atlas=atlas).probs)
 
 
 def test_a_template_without_names_is_refused(identifier, worm, other_worm):
