@@ -10,6 +10,9 @@ volumes per second when many volumes are given at once. Configurations:
   model on the candidate placements, chirality choice, colour, then the atlas's own answer (one
   registration of the test onto the shipped atlas) multiplied in: what ``fdlc label --template
   T`` does, i.e. the configuration of the accuracy figures;
+* full, 1 template, its own worm: the same with a simulated copy of the template as the test
+  (another volume of the same worm): the warp leaves it close to the template, so the model
+  looks again after it and the atlas's answer is not asked (model_card.md);
 * full, panel: the built-in reference panel, what Auto-label does: the test placed in the atlas
   frame (registration, both chiralities), 5 templates × 2 chiralities through the model to
   choose the handedness, the other 5 templates in the chosen one (15 passes);
@@ -117,6 +120,10 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(args.seed)
     tests = [simulate_worm(source, rng).table for _ in range(args.batch)]
     test = min(tests, key=lambda t: abs(len(t) - 130))
+    # The template's own worm, simulated (as the synthetic pairs of accuracy.md): the second look
+    # after a warp, no atlas opinion.
+    copies = [simulate_worm(template, rng).table for _ in range(args.batch)]
+    copy = min(copies, key=lambda t: abs(len(t) - 130))
     panel = load_panel()
     sequence, _ = simulate_sequence(source, args.seed, SequenceParams(frames=args.frames))
 
@@ -137,6 +144,11 @@ def main(argv=None) -> int:
                 lambda: ident.label(test, [template], atlas=panel.atlas).candidates(3),
                 lambda: [lab.candidates(3) for lab in ident.label_many(tests, [template], atlas=panel.atlas)],
                 len(tests),
+            ),
+            "fdlc full, 1 template, its own worm (second look after a warp)": (
+                lambda: ident.label(copy, [template], atlas=panel.atlas).candidates(3),
+                lambda: [lab.candidates(3) for lab in ident.label_many(copies, [template], atlas=panel.atlas)],
+                len(copies),
             ),
             f"fdlc full, panel ({len(panel.templates)} templates)": (
                 lambda: ident.label_panel(test, panel).candidates(3),
