@@ -9,6 +9,8 @@ chiralities); the model scores them, and the pose chosen is the one with the bes
 model's willingness to match and the registration's likelihood, with a prior that keeps the
 reference's handedness unless the model, a name the user fixed or ``--chirality`` says
 otherwise. The panel registers onto the atlas and keeps the likeliest pose per chirality.
+A test that turns out to be the template's own worm (another volume of it) gets a second look
+after a smooth warp onto the template (:meth:`Identifier._warp_refine`).
 
 The model is loaded once; :meth:`Identifier.label` may be called for as many tests as needed.
 torch is imported here only when an :class:`Identifier` is made, so ``import napari_fdlc`` and
