@@ -44,6 +44,7 @@ COLUMNS = [
     (("panel", "fdlc", "position"), "panel: position"),
     (("panel", "fdlc", "colour"), "panel: colour"),
     (("panel", "fdlc", "colour, the lab's worms in one call"), "panel: colour, the lab's worms in one call"),
+    (("panel", "fdlc", "colour, the lab's worms in one call, colours adapted"), "panel: colour, the lab's worms in one call, colours adapted"),
     (("panel", "fdlc", "colour, lab handedness"), "panel: colour, the lab's handedness"),
     (("panel", "fdlc", "colour, chirality given"), "panel: colour, handedness given"),
 ]

@@ -212,6 +212,20 @@ def test_shared_handedness_says_when_it_does_not_apply(tmp_path, capsys):
     assert "--shared-handedness is for the built-in panel" in err and len(err.strip().splitlines()) == 1
 
 
+def test_adapt_colours_names_several_recordings_again_and_says_when_it_does_not_apply(tmp_path, capsys):
+    from napari_fdlc.reference import generate_worm
+
+    tests = [tmp_path / f"t{s}.csv" for s in range(3)]
+    for s, path in enumerate(tests):
+        write_table(generate_worm(seed=20 + s), path)
+    assert run("label", *tests, "--adapt-colours", "--chirality", "same", "--out", tmp_path / "out") == 0
+    assert capsys.readouterr().err == ""
+    assert all(len(pd.read_csv(tmp_path / "out" / f"t{s}.csv")) == len(generate_worm(seed=20 + s)) for s in range(3))
+    assert run("label", tests[0], "--adapt-colours", "--out", tmp_path / "one.csv") == 0
+    err = capsys.readouterr().err
+    assert "--adapt-colours is for the built-in panel" in err and len(err.strip().splitlines()) == 1
+
+
 def test_label_with_a_template_joins_the_atlas_unless_told_not_to(tmp_path, table_files):
     """The shipped model's settings weight the atlas's answer beside a template; --no-atlas
     gives the template's answer alone (the same names offered, other probabilities)."""

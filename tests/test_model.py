@@ -390,3 +390,30 @@ def test_a_template_without_names_is_refused(identifier, worm, other_worm):
     unnamed = NeuronTable(worm.xyz, worm.colours, np.full(len(worm), "", dtype=object))
     with pytest.raises(FdlcError, match="named neuron"):
         identifier.label(other_worm, [unnamed])
+
+
+def test_recordings_of_one_microscope_are_named_again_with_their_own_colours(monkeypatch):
+    """label_panel_many(adapt_colours=True): named once with the panel, then again with a panel
+    drawn from the atlas whose colours were measured on the tests' confident names; too few
+    tests, or no colour, leave the first answers."""
+    from napari_fdlc.identify import ADAPT_MIN_CONF, ADAPT_MIN_TESTS, ADAPT_MIN_WORMS
+    from napari_fdlc.reference import generate_worm, load_panel
+
+    shipped = Identifier.load().with_chirality("same")
+    panel = load_panel()
+    tests = [generate_worm(seed=s) for s in range(10, 10 + ADAPT_MIN_TESTS)]
+    seen = []
+    real = Identifier.label_panel
+    monkeypatch.setattr(Identifier, "label_panel", lambda self, test, p, *a, **k: (seen.append(p), real(self, test, p, *a, **k))[1])
+    first = shipped.label_panel_many(tests, panel, share_handedness=False)
+    adapted = shipped.label_panel_many(tests, panel, share_handedness=False, adapt_colours=True)
+    second = {id(p): p for p in seen[len(tests):]}  # the first pass again, then the second pass's panel
+    assert len(seen) == 3 * len(tests) and len(second) == 2
+    again = seen[-1].atlas
+    names = [np.where(np.asarray(r.auto_conf) >= ADAPT_MIN_CONF, np.asarray(r.auto_id, dtype=object), "") for r in first]
+    expected = panel.atlas.with_colours_of(tests, names, ADAPT_MIN_WORMS)
+    assert np.array_equal(again.colour, expected.colour) and np.array_equal(again.mean, panel.atlas.mean)
+    assert adapted[0].info["adapted_colours"] == int((expected.colour != panel.atlas.colour).any(axis=1).sum()) > 10
+    for few_or_grey in (shipped.label_panel_many(tests[:-1], panel, share_handedness=False, adapt_colours=True),
+                        shipped.label_panel_many(tests, panel, use_colour=False, share_handedness=False, adapt_colours=True)):
+        assert "adapted_colours" not in few_or_grey[0].info

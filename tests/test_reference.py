@@ -75,3 +75,30 @@ def test_build_atlas_recovers_a_known_layout():
     assert np.median(atlas.sd) < 1.0
     # worms of the same size: the atlas keeps their size (Procrustes shrinks it only with noise)
     assert 1.0 <= atlas.worm_scale < 1.05
+
+
+def test_an_atlas_takes_the_colours_recordings_give_a_name_often_enough():
+    """Atlas.with_colours_of: a name given in at least ``min_worms`` recordings gets the mean and
+    spread of their normal scores there; other names and every position stay."""
+    from napari_fdlc.colour import IDENTITY_CHANNELS, normal_scores
+
+    atlas = load_atlas()
+    tables = [generate_worm(seed=s) for s in range(3)]
+    often, rarely = tables[0].labels[0], tables[0].labels[1]
+    names = []
+    for k, t in enumerate(tables):
+        given = np.full(len(t), "", dtype=object)
+        rows = {n: i for i, n in enumerate(t.labels)}
+        for name in (often,) + ((rarely,) if k < 2 else ()):
+            if name in rows:
+                given[rows[name]] = name
+        names.append(given)
+    assert all(often in set(g) for g in names) and sum(rarely in set(g) for g in names) == 2
+    adapted = atlas.with_colours_of(tables, names, min_worms=3)
+    scores = np.array([normal_scores(t, IDENTITY_CHANNELS)[list(g).index(often)] for t, g in zip(tables, names)])
+    k_often, k_rarely = list(atlas.names).index(often), list(atlas.names).index(rarely)
+    assert np.allclose(adapted.colour[k_often], scores.mean(0)) and np.allclose(adapted.colour_sd[k_often], scores.std(0))
+    unchanged = np.ones(len(atlas.names), bool)
+    unchanged[k_often] = False
+    assert np.array_equal(adapted.colour[unchanged], atlas.colour[unchanged]) and k_rarely in np.flatnonzero(unchanged)
+    assert np.array_equal(adapted.mean, atlas.mean) and np.array_equal(adapted.sd, atlas.sd)

@@ -18,6 +18,7 @@ from .errors import FdlcError, atomic_write
 
 
 BATCH_ROW = "colour, the lab's worms in one call"
+ADAPTED_ROW = "colour, the lab's worms in one call, colours adapted"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -108,6 +109,12 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
             scores.add(result, test, vocabulary)
         rows.append((lab, "panel", "fdlc", BATCH_ROW, scores.summary()))
         _log(f"{lab} panel {BATCH_ROW}: {rows[-1][-1]}")
+        # ... and their colours measured on them (`fdlc label --shared-handedness --adapt-colours`).
+        scores = Scores()
+        for test, result in zip(tests, identifier.label_panel_many(tests, panel, use_colour=True, first=named, adapt_colours=True)):
+            scores.add(result, test, vocabulary)
+        rows.append((lab, "panel", "fdlc", ADAPTED_ROW, scores.summary()))
+        _log(f"{lab} panel {ADAPTED_ROW}: {rows[-1][-1]}")
         # Told the handedness (--chirality same|mirrored), read from the names: each worm's own,
         # and the lab's majority set once for all of them (what a user who sets it for the
         # microscope gets).

@@ -57,6 +57,14 @@ SMALL_TEST = 100
 # With 5, every choice on the corpus stayed the same (the shipped model and the five fold models,
 # every worm of every lab, panel on auto); with 3 one SF worm of 36 flipped, with 2 three EY worms.
 PANEL_HANDEDNESS_TEMPLATES = 5
+# Recordings of one microscope named together with their colours adapted
+# (Identifier.label_panel_many): from ADAPT_MIN_TESTS recordings, a name's colour is measured on
+# them when given with confidence ADAPT_MIN_CONF or more in ADAPT_MIN_WORMS of them. Leave-one-lab-out
+# (session 11; the panel on the lab's worms in one call), 0.3 / 0.5 / 0.7 and mean only or mean and
+# spread all gained on every lab (+0.3 to +7.0 points); the middle setting ships.
+ADAPT_MIN_TESTS = 3
+ADAPT_MIN_CONF = 0.5
+ADAPT_MIN_WORMS = 3
 # The second look of InferenceSettings.warp_um. Matches of the first answer less likely than
 # WARP_MIN_PROB do not shape the warp. A test is the template's own worm when the warp leaves the
 # median of its matches within WARP_SAME_WORM_UM (RMS per axis) of their partners: measured
@@ -631,22 +639,50 @@ class Identifier:
                               assign_probs=with_atlas(names, names_and_probs(answers, calibrated=False)[1], best))
 
     def label_panel_many(self, tests: list[NeuronTable], panel: Panel, use_colour: bool = True,
-                         first: list[Labelling] | None = None) -> list[Labelling]:
-        """:meth:`label_panel` for several recordings, with one handedness for all of them when
-        they agree: handedness is a property of the microscope, and what one worm cannot show
-        many can. On ``auto``, each test's evidence is the model's willingness to match its
-        mirrored placement minus that of the other (no prior); when significantly many tests
-        lean one way (one-sided sign test, p < ``BATCH_HANDEDNESS_P``) every test is named in
-        that handedness, else each keeps its own choice. Per worm the evidence is weak (right
-        for 50-83 % of the worms of a lab the model never saw); of the corpus labs only SF's
-        count is significant (33 of its 36 worms lean mirrored; 33 are mirrored relative to the
-        atlas), and the others are left to each worm. But a lab can lean the wrong way (the
-        shipped model: 7 of KK's 9 worms, 2 of which are mirrored), so ``fdlc label`` does this
-        only when asked (``--shared-handedness``). ``info["batch_handedness"]`` says what was
-        decided. ``first``: the tests' :meth:`label_panel` answers when already made."""
+                         first: list[Labelling] | None = None, share_handedness: bool = True,
+                         adapt_colours: bool = False) -> list[Labelling]:
+        """:meth:`label_panel` for several recordings of one microscope, which can decide
+        together what one worm cannot show. ``first``: the tests' :meth:`label_panel` answers
+        when already made.
+
+        ``share_handedness``: one handedness for all of them when they agree (handedness is a
+        property of the microscope). On ``auto``, each test's evidence is the model's
+        willingness to match its mirrored placement minus that of the other (no prior); when
+        significantly many tests lean one way (one-sided sign test, p < ``BATCH_HANDEDNESS_P``)
+        every test is named in that handedness, else each keeps its own choice. Per worm the
+        evidence is weak (right for 50-83 % of the worms of a lab the model never saw); of the
+        corpus labs only SF's count is significant (33 of its 36 worms lean mirrored; 33 are
+        mirrored relative to the atlas), and the others are left to each worm. But a lab can
+        lean the wrong way (the shipped model: 7 of KK's 9 worms, 2 of which are mirrored), so
+        ``fdlc label`` does this only when asked (``--shared-handedness``).
+        ``info["batch_handedness"]`` says what was decided.
+
+        ``adapt_colours`` (with colour, from ``ADAPT_MIN_TESTS`` tests): then the atlas's colour
+        per name is measured on the tests themselves, from the names given with confidence
+        ``ADAPT_MIN_CONF`` or more in at least ``ADAPT_MIN_WORMS`` of them
+        (:meth:`Atlas.with_colours_of`), and the tests are named again with a panel drawn from
+        that atlas. ``info["adapted_colours"]`` counts the names whose colour was measured."""
+        results = list(first) if first is not None else [self.label_panel(t, panel, use_colour) for t in tests]
+        if share_handedness:
+            results = self._shared_handedness(tests, panel, use_colour, results)
+        if not (adapt_colours and use_colour and len(tests) >= ADAPT_MIN_TESTS):
+            return results
+        from .reference import make_panel
+
+        names = [np.where(np.asarray(r.auto_conf) >= ADAPT_MIN_CONF, np.asarray(r.auto_id, dtype=object), "")
+                 for r in results]
+        atlas = panel.atlas.with_colours_of(tests, names, ADAPT_MIN_WORMS)
+        adapted = int((atlas.colour != panel.atlas.colour).any(axis=1).sum())
+        results = self.label_panel_many(tests, make_panel(atlas), use_colour, share_handedness=share_handedness)
+        for r in results:
+            r.info["adapted_colours"] = adapted
+        return results
+
+    def _shared_handedness(self, tests: list[NeuronTable], panel: Panel, use_colour: bool,
+                           results: list[Labelling]) -> list[Labelling]:
+        """The sign test of :meth:`label_panel_many` over the tests' answers ``results``."""
         from scipy.stats import binomtest
 
-        results = list(first) if first is not None else [self.label_panel(t, panel, use_colour) for t in tests]
         if self.settings.chirality != "auto" or len(tests) < 2:
             return results
         evidence = np.array([r.info["willingness"][1] - r.info["willingness"][0] for r in results])

@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import FdlcError, warn
+from .identify import ADAPT_MIN_TESTS
 from .match import Labelling, make_labelling, name_probabilities
 from .table import COORDS, NeuronTable, read_table, write_table
 
@@ -63,11 +64,13 @@ def label_files(
     chirality: str = "auto",
     shared_handedness: bool = False,
     use_atlas: bool = True,
+    adapt_colours: bool = False,
 ) -> list[Path]:
     """Label each test table and write one CSV per test. Returns the paths written.
     ``shared_handedness``: the panel names the tests in one handedness when they clearly agree
-    (:meth:`Identifier.label_panel_many`); ``use_atlas``: with templates, join the built-in
-    atlas's own answer (:func:`napari_fdlc.identify.label_neurons`)."""
+    (:meth:`Identifier.label_panel_many`); ``adapt_colours``: the panel's colours are measured
+    on the tests themselves, then they are named again (same method); ``use_atlas``: with
+    templates, join the built-in atlas's own answer (:func:`napari_fdlc.identify.label_neurons`)."""
     if top_k < 1:
         raise FdlcError(f"--top-k must be at least 1 (got {top_k})")
     if method not in ("fdlc", "cpd"):
@@ -83,16 +86,19 @@ def label_files(
     paths = _output_paths(tests, out)
     if shared_handedness and (template_tables or chirality != "auto"):
         warn("--shared-handedness is for the built-in panel with --chirality auto: ignored here")
+    if adapt_colours and (template_tables or not use_colour or len(test_tables) < ADAPT_MIN_TESTS):
+        warn(f"--adapt-colours is for the built-in panel with colour and at least {ADAPT_MIN_TESTS} tests: ignored here")
     if method == "fdlc":
         from .identify import Identifier, default_identifier, label_neurons
         from .reference import load_panel
 
         identifier = (Identifier.load(weights) if weights else default_identifier()).with_chirality(chirality)
-        if template_tables or not shared_handedness:
+        if template_tables or not (shared_handedness or adapt_colours):
             results = [label_neurons(t, template_tables or None, use_colour, identifier=identifier, use_atlas=use_atlas)
                        for t in test_tables]
         else:
-            results = identifier.label_panel_many(test_tables, load_panel(), use_colour)
+            results = identifier.label_panel_many(test_tables, load_panel(), use_colour, share_handedness=shared_handedness,
+                                                  adapt_colours=adapt_colours)
             batch = results[0].info.get("batch_handedness") or {}
             if batch.get("decided"):
                 warn(f"{batch['lean_mirrored']} of {batch['tests']} recordings lean mirrored relative to the atlas: "

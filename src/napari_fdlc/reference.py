@@ -31,7 +31,7 @@ statistics — the bundled sample data is made this way.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
 
@@ -88,6 +88,27 @@ class Atlas:
         alone: the atlas's own answer, without the model (see :func:`napari_fdlc.register.posterior`)."""
         placement = self.register(test, use_colour, chiralities=(mirrored,))[0]
         return posterior(test, self.mixture(), placement.xyz, use_colour)
+
+    def with_colours_of(self, tables: list[NeuronTable], names: list[np.ndarray], min_worms: int = 3) -> "Atlas":
+        """This atlas with each name's colour (mean and spread of the normal scores) measured
+        on ``tables`` instead, where ``names[k]`` names the rows of ``tables[k]`` ('' = not
+        used) and the name is given in at least ``min_worms`` of them; positions unchanged.
+        Recordings of one microscope share its colour balance, which a corpus of other labs
+        does not know (Identifier.label_panel_many, ``adapt_colours``)."""
+        index = {n: k for k, n in enumerate(self.names)}
+        seen: dict[int, list] = {}
+        for table, given in zip(tables, names):
+            if not all(c in table.colours for c in IDENTITY_CHANNELS):
+                continue
+            scores = normal_scores(table, IDENTITY_CHANNELS)
+            for row, name in enumerate(given):
+                if name in index:
+                    seen.setdefault(index[name], []).append(scores[row])
+        colour, colour_sd = self.colour.copy(), self.colour_sd.copy()
+        for k, values in seen.items():
+            if len(values) >= min_worms:
+                colour[k], colour_sd[k] = np.mean(values, axis=0), np.std(values, axis=0)
+        return replace(self, colour=colour, colour_sd=colour_sd)
 
     def to_frame(self) -> pd.DataFrame:
         df = pd.DataFrame({"name": self.names})
