@@ -176,7 +176,8 @@ def test_evaluate_writes_every_protocol(tmp_path, corpus_path):
     rows = {tuple(c.strip() for c in line.strip("|").split("|")[1:4]) for line in out.read_text().splitlines()
             if line.startswith("| SK1 |")}
     assert rows == {("pairs", m, i) for m in ("fdlc", "floor") for i in ("position", "colour")} | {
-        ("panel", "fdlc", i) for i in ("position", "colour", "colour, the lab's worms in one call", "colour, chirality given", "colour, lab handedness")}
+        ("panel", "fdlc", i) for i in ("position", "colour", "colour, the lab's worms in one call", "colour, the lab's worms in one call, colours adapted",
+                                    "colour, chirality given", "colour, lab handedness")}
     assert (tmp_path / "docs" / "images" / "calibration.png").exists()
 
 
