@@ -29,8 +29,8 @@ import numpy as np
 
 from . import colour as colour_model
 from .errors import FdlcError, ModelError, warn
-from .geometry import (CHIRALITIES, apply_affine, canonical_frame, compose_affine, fit_affine, fit_warp,
-                       mirrored_by_names, position_evidence)
+from .geometry import (CHIRALITIES, apply_affine, compose_affine, fit_affine, fit_warp, mirrored_by_names,
+                       position_evidence)
 from .match import Labelling, assign_log, make_labelling, name_probabilities
 from .register import posterior, register, template_mixture
 from .table import NeuronTable
@@ -390,9 +390,9 @@ class Identifier:
         likelihood there. Updates ``log_p`` and ``moved`` of ``found`` in place, sets
         ``same_worm`` on those and records ``warp_rms_um`` (NaN: fewer than 8 confident
         matches)."""
-        if self.settings.warp_um <= 0:
+        if self.settings.warp_um <= 0 or not found:
             return
-        a = canonical_frame(template.xyz)[0]  # the frame the tests were placed in (template_mixture)
+        a = found[0]["template_xyz"]  # the template in the frame the tests were placed in
         refined, warped, widths = [], [], []
         for k, (f, colour) in enumerate(zip(found, colours)):
             lp = _add_evidence(f["log_p"], colour)
@@ -419,13 +419,13 @@ class Identifier:
         """The full search for many tests against one template: registration (:meth:`place`),
         every candidate pose through the model in one batch, the choice, ``refine_steps``
         refinements. Returns the per-test results of :meth:`_align` (plus ``mirrored``, the
-        candidates' flags) and whether the model took colour. ``fdlc label`` and the first
+        candidates' flags, and ``template_xyz``, the template in the frame they were placed in) and whether the model took colour. ``fdlc label`` and the first
         volume of ``fdlc track`` both start here."""
         a, starts, mirrored, priors = self.place(template, tests, use_colour)
         tc, sc = self._model_colours(template, tests, use_colour)
         found = self._align(a, starts, refine_steps, tc, sc, prior=priors)
         for f, flags in zip(found, mirrored):
-            f["mirrored"] = flags
+            f["mirrored"], f["template_xyz"] = flags, a
         return found, tc is not None
 
     def _answer(self, log_p: np.ndarray, colour: np.ndarray | None, calibrated: bool = True) -> np.ndarray:

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import FdlcError, warn
-from .identify import ADAPT_MIN_TESTS
+from .identify import ADAPT_MIN_TESTS, Identifier, default_identifier, label_neurons
 from .match import Labelling, make_labelling, name_probabilities
 from .table import COORDS, NeuronTable, read_table, write_table
 
@@ -89,7 +89,6 @@ def label_files(
     if adapt_colours and (template_tables or not use_colour or len(test_tables) < ADAPT_MIN_TESTS):
         warn(f"--adapt-colours is for the built-in panel with colour and at least {ADAPT_MIN_TESTS} tests: ignored here")
     if method == "fdlc":
-        from .identify import Identifier, default_identifier, label_neurons
         from .reference import load_panel
 
         identifier = (Identifier.load(weights) if weights else default_identifier()).with_chirality(chirality)

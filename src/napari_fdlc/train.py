@@ -31,9 +31,9 @@ import numpy as np
 
 from .colour import IDENTITY_CHANNELS, normal_scores
 from .corpus import LABS, Worm, load_corpus
-from .errors import atomic_write
+from .errors import FdlcError, atomic_write
 from .evaluate import Scores, mirrored_relative_to
-from .geometry import N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, fit_affine, true_orientation
+from .geometry import N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, fit_affine, fit_warp, true_orientation
 from .reference import atlas_worm, build_atlas
 from .register import register, template_mixture
 from .simulate import SimulationParams, simulate_worm
@@ -101,16 +101,12 @@ class TrainConfig:
         return asdict(self)
 
     def check(self) -> None:
-        from .errors import FdlcError
-
         if self.task not in TASKS:
             raise FdlcError(f"unknown training task '{self.task}' (use {' or '.join(TASKS)})")
 
     @classmethod
     def from_json(cls, path: str | Path) -> "TrainConfig":
         """A configuration from a JSON file: a bare config, or a checkpoint's JSON (train_config)."""
-        from .errors import FdlcError
-
         try:
             data = json.loads(Path(path).read_text())
         except (OSError, ValueError) as exc:
@@ -266,7 +262,6 @@ def tracking_example(worms: list[Worm], rng, cfg: TrainConfig):
     That volume is 1 to ``stale_warp`` volumes back, so that the model also sees the larger
     residuals of a chain that lags. The template is the recording's first volume, the
     reference; targets are its rows."""
-    from .geometry import fit_warp
     from .track import SequenceParams, TrackSettings, _geometric_step, _Reference, simulate_sequence
 
     table = _crop(worms[rng.integers(len(worms))].table, cfg.max_neurons, rng)
@@ -337,8 +332,6 @@ def training_batches(worms: list[Worm], cfg: TrainConfig, atlas, rng, first_step
     import multiprocessing
 
     import torch
-
-    from .errors import FdlcError
 
     if cfg.workers <= 0:
         while True:
