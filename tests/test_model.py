@@ -417,3 +417,27 @@ def test_recordings_of_one_microscope_are_named_again_with_their_own_colours(mon
     for few_or_grey in (shipped.label_panel_many(tests[:-1], panel, share_handedness=False, adapt_colours=True),
                         shipped.label_panel_many(tests, panel, use_colour=False, share_handedness=False, adapt_colours=True)):
         assert "adapted_colours" not in few_or_grey[0].info
+
+
+def test_the_atlas_worm_answer_is_averaged_with_the_template_at_its_weight(identifier, worm, other_worm, monkeypatch):
+    """At ``atlas_worm_weight`` w the answer names are assigned on is (1 - w) × the template's
+    + w × the model's answer against the atlas's mean worm — which is what a panel of that one
+    worm answers, in the template's names."""
+    import napari_fdlc.identify as identify
+    from napari_fdlc.reference import Panel, atlas_worm, load_atlas
+
+    atlas = load_atlas()
+    seen = []
+    real = identify.make_labelling
+    monkeypatch.setattr(identify, "make_labelling", lambda names, probs, *a, assign_probs=None, **k: (
+        seen.append((names, assign_probs)), real(names, probs, *a, assign_probs=assign_probs, **k))[1])
+    same = identifier.with_settings(chirality="same", template_chirality_doubt=0.0)
+    for weight in (0.0, 1.0, 0.5):
+        same.with_settings(atlas_worm_weight=weight).label(other_worm, [worm], atlas=atlas)
+    same.label_panel(other_worm, Panel(atlas, [atlas_worm(atlas)]))
+    (names, alone), (_, worm_only), (_, half), (panel_names, panel) = seen
+    column = {n: i for i, n in enumerate(panel_names)}
+    assert set(names) <= set(column)  # the template is drawn from the atlas: every name known
+    np.testing.assert_allclose(worm_only, panel[:, [column[n] for n in names]], rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(half, 0.5 * alone + 0.5 * worm_only, rtol=1e-6, atol=1e-9)
+    assert np.abs(worm_only - alone).max() > 0.05

@@ -32,7 +32,7 @@ from .errors import FdlcError, ModelError, warn
 from .geometry import (CHIRALITIES, apply_affine, compose_affine, fit_affine, fit_warp, mirrored_by_names,
                        position_evidence)
 from .match import Labelling, assign_log, make_labelling, name_probabilities
-from .register import posterior, register, template_mixture
+from .register import Placement, posterior, register, template_mixture
 from .table import NeuronTable
 
 if TYPE_CHECKING:
@@ -114,6 +114,14 @@ class InferenceSettings:
     # Fitted on training labs, each scored with an atlas built without it.
     atlas_weight: float = 0.0
     atlas_weight_position: float = 0.0
+    # With a template: the weight of the model's answer against the atlas's mean worm (the
+    # panel's first template, the test placed in the atlas's frame in the handedness the
+    # template's names give) in an average with the template's answer, before the atlas's own
+    # answer is multiplied in; with colour and position only. One worm is a noisy reference
+    # (every name sits ~5 µm from its atlas mean); the mean worm averages the corpus.
+    # Fitted on training labs, each scored with an atlas built without it; 0 = the template alone.
+    atlas_worm_weight: float = 0.0
+    atlas_worm_weight_position: float = 0.0
     # The panel: the same, the atlas's answer at the test's placement in the atlas frame
     # multiplied into the panel's average (its templates are samples of the atlas, the
     # posterior weighs every name's own spread and colour), with colour and position only.
@@ -154,6 +162,7 @@ class Identifier:
         self.model = model.to(self.device).eval() if model is not None else None
         self.settings = settings or InferenceSettings()
         self._traced: dict = {}  # see _model_pass; shared with copies made by with_settings
+        self._mean_worm: tuple = (None, None)  # (atlas, its mean worm) for _atlas_worm_answer
 
     @classmethod
     def load(cls, path: str | Path | None = None, device: str | None = None) -> "Identifier":
@@ -550,26 +559,62 @@ class Identifier:
         answer (:meth:`_atlas_answer`) raised to the fitted weight; unchanged (joined False)
         without an atlas, at weight 0, or when the template cannot place the atlas."""
         weight = self.settings.atlas_weight if use_colour else self.settings.atlas_weight_position
-        if atlas is None or weight <= 0:
+        worm_weight = self.settings.atlas_worm_weight if use_colour else self.settings.atlas_worm_weight_position
+        if atlas is None or (weight <= 0 and worm_weight <= 0):
             return probs, assign_probs, False
-        prior = self._atlas_answer(test, template, mirrored_to_template, atlas, names, use_colour)
-        if prior is None:
+        placement = self._atlas_placement(test, template, mirrored_to_template, atlas, use_colour)
+        if placement is None:
             return probs, assign_probs, False
-        # Names on the product itself; the probabilities reported temper the atlas's part like
-        # the model's (the temperature divides the whole log-answer).
-        return _times(probs, prior, weight / self.settings.temperature), _times(assign_probs, prior, weight), True
+        placed = placement.xyz
+        # A partial view (SF's ~60-neuron recordings) sits on the whole-head mean worm at one of
+        # several offsets, a weaker placement than on a template of its own lab.
+        if worm_weight > 0 and not placement.partial_view:
+            worm_probs, worm_assign = self._atlas_worm_answer(test, atlas, placed, names, probs, assign_probs, use_colour)
+            probs = (1 - worm_weight) * probs + worm_weight * worm_probs
+            assign_probs = (1 - worm_weight) * assign_probs + worm_weight * worm_assign
+        if weight > 0:
+            resp, none = posterior(test, atlas.mixture(), placed, use_colour)
+            prior = _in_names(resp, none, atlas.names, names)
+            # Names on the product itself; the probabilities reported temper the atlas's part
+            # like the model's (the temperature divides the whole log-answer).
+            probs, assign_probs = _times(probs, prior, weight / self.settings.temperature), _times(assign_probs, prior, weight)
+        return probs, assign_probs, True
 
-    def _atlas_answer(self, test: NeuronTable, template: NeuronTable, mirrored_to_template: bool, atlas: Atlas,
-                      names: list[str], use_colour: bool) -> np.ndarray | None:
-        """The atlas's answer for the test in the template's names: (N, names + 1), the last
-        column "none". A template is labelled, so its names give its handedness relative to the
-        atlas, and with the model's choice for the test relative to the template, the test's
-        (None when the template shares fewer than 4 names with the atlas; see :func:`_in_names`)."""
+    def _atlas_placement(self, test: NeuronTable, template: NeuronTable, mirrored_to_template: bool, atlas: Atlas,
+                         use_colour: bool) -> Placement | None:
+        """The test placed in the atlas's frame in the handedness it has there: a
+        template is labelled, so its names give its handedness relative to the atlas, and with
+        the model's choice for the test relative to the template, the test's (None when the
+        template shares fewer than 4 names with the atlas)."""
         template_mirrored = mirrored_by_names(atlas.names, atlas.mean, template, min_names=4)
         if template_mirrored is None:
             return None
-        resp, none = atlas.posterior(test, use_colour, mirrored=bool(template_mirrored) != bool(mirrored_to_template))
-        return _in_names(resp, none, atlas.names, names)
+        mirrored = bool(template_mirrored) != bool(mirrored_to_template)
+        return atlas.register(test, use_colour, chiralities=(mirrored,))[0]
+
+    def _atlas_worm_answer(self, test: NeuronTable, atlas: Atlas, placed: np.ndarray, names: list[str],
+                           probs: np.ndarray, assign_probs: np.ndarray, use_colour: bool):
+        """The model's answer (reported, and without the temperature for the assignment) for
+        the test ``placed`` in the atlas's frame against the atlas's mean worm, in the template's
+        ``names`` (N, names): a name the atlas lacks keeps the template's own probability (no
+        opinion); what the atlas gives names the template lacks is "no named match"."""
+        from .reference import atlas_worm
+
+        if self._mean_worm[0] is not atlas:
+            self._mean_worm = (atlas, atlas_worm(atlas))
+        worm = self._mean_worm[1]
+        tc, sc = self._model_colours(worm, [test], use_colour)
+        log_p = self._forward_grid([worm.xyz], [placed], None if tc is None else [tc], sc)[0][0]
+        colour = self._colour_evidence(worm, test, tc is not None) if use_colour else None
+        column = {n: i for i, n in enumerate(worm.labels)}
+        known = np.array([n in column for n in names], dtype=bool)
+        rows = [column[n] for n, k in zip(names, known) if k]
+        out = []
+        for calibrated, own in ((True, probs), (False, assign_probs)):
+            answer = own.copy()
+            answer[:, known] = self._answer(log_p, colour, calibrated)[:, rows]
+            out.append(answer)
+        return out
 
     def label_panel(self, test: NeuronTable, panel: Panel, use_colour: bool = True, fixed: dict[int, str] | None = None) -> Labelling:
         """Names from the built-in panel. The test is placed in the atlas frame once per

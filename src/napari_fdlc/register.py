@@ -69,6 +69,7 @@ class Placement:
     xyz: np.ndarray  # (N, 3) µm in the reference frame
     mirrored: bool  # the recording's z had to be mirrored
     score: float  # mean log-likelihood per neuron under the mixture
+    partial_view: bool = False  # shorter than the reference: started at offsets along its body axis
 
 
 def template_mixture(template: NeuronTable) -> Mixture:
@@ -98,7 +99,8 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         return partial_view_shifts(points[:, 0], mixture.mean[:, 0], mixture.scale_range[0])
 
     shifts = shifts_of(canon)
-    if len(shifts) > 1:  # a partial view: start at the scale it has against the reference
+    partial = len(shifts) > 1
+    if partial:  # a partial view: start at the scale it has against the reference
         canon = canon * mixture.partial_view_scale
         shifts = shifts_of(canon)
     keep = keep if len(shifts) == 1 else 2 * keep
@@ -131,12 +133,12 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     scores = _log_likelihood(log_components(points)).mean(axis=-1, dtype=np.float64)
     points = points.astype(np.float64)
     if every_start:
-        return [Placement(p, bool(m), float(s)) for p, m, s in zip(points, mirrored[chosen], scores)]
+        return [Placement(p, bool(m), float(s), partial) for p, m, s in zip(points, mirrored[chosen], scores)]
     placements = []
     for m in chiralities:
         own = np.flatnonzero(mirrored[chosen] == m)
         k = own[np.argmax(scores[own])]
-        placements.append(Placement(points[k], bool(m), float(scores[k])))
+        placements.append(Placement(points[k], bool(m), float(scores[k]), partial))
     return placements
 
 

@@ -666,8 +666,9 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
     # Every fitted setting starts from its default, not from what the model's JSON holds, so
     # that calibrating twice gives the same settings (each choice below depends on the others).
     defaults = type(settings)()
-    for name in ("no_match_weight", "colour_weight", "atlas_weight", "atlas_weight_position", "temperature",
-                 "chirality_doubt", "panel_temperature", "panel_atlas_weight", "panel_atlas_weight_position"):
+    for name in ("no_match_weight", "colour_weight", "atlas_weight", "atlas_weight_position", "atlas_worm_weight",
+                 "atlas_worm_weight_position", "temperature", "chirality_doubt", "panel_temperature",
+                 "panel_atlas_weight", "panel_atlas_weight_position"):
         setattr(settings, name, getattr(defaults, name))
 
     def choose(name, values, score):
@@ -682,9 +683,13 @@ def _fit_settings(identifier, val_pairs: dict[str, list], log, panel_tests: dict
     settings.mirror_penalty = MIRROR_PRIOR  # not fitted: why at identify.MIRROR_PRIOR
     choose("no_match_weight", (0.05, 0.2, 0.5, 1.0), lambda: run(False).summary()["top1"])
     choose("colour_weight", (0.0, 0.25, 0.5, 1.0), lambda: run(True).summary()["top1"])
-    if atlases:  # with a template, the weight of the atlas's own answer (top-1)
-        choose("atlas_weight_position", (0.0, 0.25, 0.5, 1.0, 2.0), lambda: run(False).summary()["top1"])
-        choose("atlas_weight", (0.0, 0.25, 0.5, 1.0, 2.0), lambda: run(True).summary()["top1"])
+    if atlases:  # with a template, the weights of the atlas's answers (top-1)
+        # The atlas's own answer, then the atlas worm's beside it, then the first again (they
+        # share what they correct: a single template's individual variation).
+        for name in ("atlas_weight", "atlas_worm_weight", "atlas_weight"):
+            for suffix, use_colour in (("_position", False), ("", True)):
+                values = (0.0, 0.25, 0.5, 0.75) if name == "atlas_worm_weight" else (0.0, 0.25, 0.5, 1.0, 2.0)
+                choose(name + suffix, values, lambda c=use_colour: run(c).summary()["top1"])
     # lowest expected calibration error, position only and with colour
     choose("temperature", (0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.5, 2.0, 3.0),
            lambda: -np.mean([run(c).summary()["ece"] for c in (False, True)]))
