@@ -332,7 +332,20 @@ def test_a_small_test_keeps_twice_the_registration_starts(identifier, worm, othe
     assert len(one) == 2 * KEPT_STARTS
 
 
-def test_the_atlas_answer_joins_the_panel_at_its_weight(identifier, other_worm, monkeypatch):
+@pytest.fixture
+def assigned(monkeypatch):
+    """(names, assign_probs) of every answer handed to make_labelling, in order: what the
+    names are assigned on, before the one-to-one normalisation."""
+    import napari_fdlc.identify as identify
+
+    seen = []
+    real = identify.make_labelling
+    monkeypatch.setattr(identify, "make_labelling", lambda names, probs, *a, assign_probs=None, **k: (
+        seen.append((names, assign_probs)), real(names, probs, *a, assign_probs=assign_probs, **k))[1])
+    return seen
+
+
+def test_the_atlas_answer_joins_the_panel_at_its_weight(identifier, other_worm, assigned):
     """At ``panel_atlas_weight`` w the panel's answer (what names are assigned on) is its
     templates' average times the atlas's posterior at the test's placement, raised to w; at 0
     it is the average alone. With an untrained model the atlas is the better namer."""
@@ -341,14 +354,10 @@ def test_the_atlas_answer_joins_the_panel_at_its_weight(identifier, other_worm, 
     from napari_fdlc.register import posterior
 
     panel = load_panel()
-    seen = []
-    real = identify.make_labelling
-    monkeypatch.setattr(identify, "make_labelling", lambda names, probs, *a, assign_probs=None, **k: (
-        seen.append((names, assign_probs)), real(names, probs, *a, assign_probs=assign_probs, **k))[1])
     same = identifier.with_settings(chirality="same", chirality_doubt=0.0)
     alone = same.label_panel(other_worm, panel)
     joined = same.with_settings(panel_atlas_weight=1.0).label_panel(other_worm, panel)
-    (names, average), (_, product) = seen
+    (names, average), (_, product) = assigned
     placement = panel.atlas.register(other_worm, True, (False,))[0]
     resp, none = posterior(other_worm, panel.atlas.mixture(), placement.xyz, True)
     expected = identify._times(average, identify._in_names(resp, none, panel.atlas.names, names), 1.0)
@@ -419,23 +428,18 @@ def test_recordings_of_one_microscope_are_named_again_with_their_own_colours(mon
         assert "adapted_colours" not in few_or_grey[0].info
 
 
-def test_the_atlas_worm_answer_is_averaged_with_the_template_at_its_weight(identifier, worm, other_worm, monkeypatch):
+def test_the_atlas_worm_answer_is_averaged_with_the_template_at_its_weight(identifier, worm, other_worm, assigned):
     """At ``atlas_worm_weight`` w the answer names are assigned on is (1 - w) × the template's
     + w × the model's answer against the atlas's mean worm — which is what a panel of that one
     worm answers, in the template's names."""
-    import napari_fdlc.identify as identify
     from napari_fdlc.reference import Panel, atlas_worm, load_atlas
 
     atlas = load_atlas()
-    seen = []
-    real = identify.make_labelling
-    monkeypatch.setattr(identify, "make_labelling", lambda names, probs, *a, assign_probs=None, **k: (
-        seen.append((names, assign_probs)), real(names, probs, *a, assign_probs=assign_probs, **k))[1])
     same = identifier.with_settings(chirality="same", template_chirality_doubt=0.0)
     for weight in (0.0, 1.0, 0.5):
         same.with_settings(atlas_worm_weight=weight).label(other_worm, [worm], atlas=atlas)
     same.label_panel(other_worm, Panel(atlas, [atlas_worm(atlas)]))
-    (names, alone), (_, worm_only), (_, half), (panel_names, panel) = seen
+    (names, alone), (_, worm_only), (_, half), (panel_names, panel) = assigned
     column = {n: i for i, n in enumerate(panel_names)}
     assert set(names) <= set(column)  # the template is drawn from the atlas: every name known
     np.testing.assert_allclose(worm_only, panel[:, [column[n] for n in names]], rtol=1e-5, atol=1e-8)
