@@ -496,8 +496,8 @@ class Identifier:
     ) -> Labelling:
         """Names for every test neuron from one or several labelled templates, each matched in
         its own registration. ``fixed`` maps rows to names the user decided. With an ``atlas``
-        (and an atlas weight in the settings), the templates' answer is multiplied by the
-        atlas's own answer (:meth:`_atlas_answer`) raised to that weight."""
+        (and atlas weights in the settings), the templates' answer is joined by the atlas's
+        answers (:meth:`_join_atlas`)."""
         return self.label_many([test], templates, use_colour, atlas, fixed)[0]
 
     def label_many(
@@ -555,9 +555,12 @@ class Identifier:
 
     def _join_atlas(self, test: NeuronTable, template: NeuronTable, mirrored_to_template: bool, names: list[str],
                     probs: np.ndarray, assign_probs: np.ndarray, use_colour: bool, atlas: Atlas | None):
-        """(probs, assign_probs, joined): the templates' answer over ``names`` times the atlas's
-        answer (:meth:`_atlas_answer`) raised to the fitted weight; unchanged (joined False)
-        without an atlas, at weight 0, or when the template cannot place the atlas."""
+        """(probs, assign_probs, joined): the templates' answer over ``names``, averaged with the
+        model's answer against the atlas's mean worm (:meth:`_atlas_worm_answer`, at
+        ``atlas_worm_weight``), times the atlas's own posterior at the test's placement there
+        (:func:`napari_fdlc.register.posterior`, in the template's names, see :func:`_in_names`)
+        raised to ``atlas_weight``; unchanged (joined False) without an atlas, at weights 0, or
+        when the template cannot place the atlas (:meth:`_atlas_placement`)."""
         weight = self.settings.atlas_weight if use_colour else self.settings.atlas_weight_position
         worm_weight = self.settings.atlas_worm_weight if use_colour else self.settings.atlas_worm_weight_position
         if atlas is None or (weight <= 0 and worm_weight <= 0):
