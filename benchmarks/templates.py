@@ -1,6 +1,6 @@
 """Several labelled worms of a new lab as templates: how much each one more is worth.
 
-    python benchmarks/templates.py [--runs runs] [--trials 20] [--max-templates 3]
+    python benchmarks/templates.py [--runs runs] [--trials 20] [--max-templates 3] [--chirality same]
 
 For each corpus lab, the fold model that never saw it (``runs/fold_<LAB>/model``, made by
 ``benchmarks/leave_one_lab_out.py --train``; its settings by ``--recalibrate``) names a worm of
@@ -15,7 +15,10 @@ templates of K + 1 are those of K plus one). Two kinds of draw:
   mixes both handedness within KK, SF and SK1 (a dataset convention, not biology), and a
   template of the other handedness than the test swaps every left/right pair.
 
-Top-1 / top-3 % over the test neurons whose name some template has. Prints a markdown table.
+``--chirality same`` tells fdlc that test and templates share their handedness (default
+``auto``: the template's handedness unless the model is far more willing to match the mirrored
+placement). Top-1 / top-3 % over the test neurons whose name some template has. Prints a
+markdown table.
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", default="runs", help="folder of the fold models (runs/fold_<LAB>/model)")
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--max-templates", type=int, default=3)
+    ap.add_argument("--chirality", choices=("auto", "same"), default="auto")
     args = ap.parse_args(argv)
     worms = load_corpus(args.corpus)
     ks = range(1, args.max_templates + 1)
@@ -58,7 +62,7 @@ def main(argv=None) -> int:
     for lab in args.labs:
         tables = [w.table for w in worms if w.lab == lab]
         atlas = build_atlas([w for w in worms if w.lab != lab])
-        identifier = Identifier.load(Path(args.runs) / f"fold_{lab}" / "model")
+        identifier = Identifier.load(Path(args.runs) / f"fold_{lab}" / "model").with_chirality(args.chirality)
         mirrored = np.array([mirrored_relative_to(atlas, t) for t in tables])
         majority = [i for i in range(len(tables)) if mirrored[i] == (mirrored.mean() > 0.5)]
         for kind, pool in (("any worms of the lab", list(range(len(tables)))), ("one handedness", majority)):
