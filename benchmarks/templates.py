@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 from napari_fdlc.corpus import LABS, load_corpus  # noqa: E402
 from napari_fdlc.evaluate import Scores, mirrored_relative_to  # noqa: E402
-from napari_fdlc.identify import Identifier  # noqa: E402
+from napari_fdlc.identify import Identifier, harmonised_templates  # noqa: E402
 from napari_fdlc.reference import build_atlas  # noqa: E402
 
 
@@ -73,7 +73,7 @@ def main(argv=None) -> int:
             for k in ks:
                 scores = Scores()
                 for test, chosen in trials:
-                    templates = [tables[pool[i]] for i in chosen[:k]]
+                    templates = harmonised_templates([tables[pool[i]] for i in chosen[:k]])[0]  # as fdlc label does
                     vocabulary = set().union(*(set(t.names) for t in templates))
                     target = tables[pool[test]]
                     scores.add(identifier.label(target, templates, use_colour=True, atlas=atlas), target, vocabulary)

@@ -238,3 +238,22 @@ def test_label_with_a_template_joins_the_atlas_unless_told_not_to(tmp_path, tabl
     assert len(a) == len(b) and not np.allclose(a["prob_1"], b["prob_1"])
     names = set(pd.read_csv(template)["label"].dropna())
     assert set(a["auto_id"].dropna()) <= names and set(b["auto_id"].dropna()) <= names
+
+
+def test_templates_of_another_handedness_are_mirrored_back_once(tmp_path, table_files, untrained_weights, worm, capsys):
+    """Several templates are put in the first one's handedness, with one line on stderr per
+    call (not per test); the flipped template's names then fit the first one proper."""
+    from napari_fdlc.identify import harmonised_templates
+
+    test, template = table_files
+    mirrored = NeuronTable(worm.xyz * [1, 1, -1], worm.colours, worm.labels, source="mirrored.csv")
+    write_table(mirrored, tmp_path / "mirrored.csv")
+    harmonised, flipped = harmonised_templates([worm, mirrored, worm])
+    assert flipped == [1] and np.allclose(harmonised[1].xyz, worm.xyz) and harmonised[2] is worm
+    out = tmp_path / "outdir"
+    assert run("label", test, tmp_path / "mirrored.csv", "--template", template, tmp_path / "mirrored.csv",
+               "--weights", untrained_weights, "--out", out) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "mirrored.csv: mirrored relative to" in err[0]
+    assert run("label", test, "--template", template, template, "--weights", untrained_weights, "--out", tmp_path / "a.csv") == 0
+    assert capsys.readouterr().err == ""

@@ -19,8 +19,9 @@ METHODS = ("fdlc", "cpd")
 def _label_parser(sub) -> None:
     p = sub.add_parser("label", help="name the neurons of neuron tables", description="Name the neurons of one or more neuron tables.")
     p.add_argument("tests", nargs="+", metavar="TEST.csv", help="neuron tables to identify")
-    p.add_argument("--template", action="append", default=[], metavar="T.csv",
-                   help="labelled neuron table to take names from (repeatable); default: the built-in reference panel")
+    p.add_argument("--template", action="extend", nargs="+", default=[], metavar="T.csv",
+                   help="labelled neuron table(s) to take names from (--template a.csv b.csv, or repeated); "
+                        "default: the built-in reference panel")
     p.add_argument("--no-color", "--no-colour", dest="no_colour", action="store_true", help="positions only")
     p.add_argument("--top-k", type=int, default=3, help="number of candidates written (default 3)")
     p.add_argument("--method", choices=METHODS, default="fdlc", help="fdlc (default) or cpd (classical baseline; needs --template)")

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import FdlcError, warn
-from .identify import ADAPT_MIN_TESTS, Identifier, default_identifier, label_neurons
+from .identify import ADAPT_MIN_TESTS, Identifier, default_identifier, harmonise, label_neurons
 from .match import Labelling, make_labelling, name_probabilities
 from .table import COORDS, NeuronTable, read_table, write_table
 
@@ -83,6 +83,8 @@ def label_files(
     for t in template_tables:
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron (a 'label' column with names is needed)")
+    if method == "fdlc":  # once here, so that label_neurons finds them harmonised and says nothing per test
+        template_tables = harmonise(template_tables)
     paths = _output_paths(tests, out)
     if shared_handedness and (template_tables or chirality != "auto"):
         warn("--shared-handedness is for the built-in panel with --chirality auto: ignored here")
