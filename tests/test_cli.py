@@ -68,7 +68,8 @@ def _bad(tmp_path, name, content):
 
 @pytest.mark.parametrize(
     "case",
-    ["missing", "empty", "no_columns", "text", "nan", "inf", "template_without_names", "same_stem", "top_k", "cpd_no_template"],
+    ["missing", "empty", "no_columns", "text", "nan", "inf", "template_without_names", "same_stem", "top_k", "cpd_no_template",
+     "no_test", "test_after_template"],
 )
 def test_bad_input_one_line_nonzero_nothing_written(tmp_path, table_files, untrained_weights, capsys, case):
     test, template = table_files
@@ -84,6 +85,8 @@ def test_bad_input_one_line_nonzero_nothing_written(tmp_path, table_files, untra
         "same_stem": [test, (tmp_path / "sub").mkdir() or _bad(tmp_path, "sub/test.csv", test.read_text()), "--template", template],
         "top_k": [test, "--template", template, "--top-k", "0"],
         "cpd_no_template": [test, "--method", "cpd"],
+        "no_test": [],
+        "test_after_template": ["--template", template, test],  # read as two templates: said in words
     }[case]
     code = run("label", *args, "--weights", untrained_weights, "--out", out)
     err = capsys.readouterr().err.strip().splitlines()

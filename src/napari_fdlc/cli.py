@@ -18,7 +18,9 @@ METHODS = ("fdlc", "cpd")
 
 def _label_parser(sub) -> None:
     p = sub.add_parser("label", help="name the neurons of neuron tables", description="Name the neurons of one or more neuron tables.")
-    p.add_argument("tests", nargs="+", metavar="TEST.csv", help="neuron tables to identify")
+    # "*", not "+": `fdlc label --template T.csv TEST.csv` reads TEST.csv as a template, and
+    # label_files then says so in words rather than argparse's "required: TEST.csv".
+    p.add_argument("tests", nargs="*", metavar="TEST.csv", help="neuron tables to identify")
     p.add_argument("--template", action="extend", nargs="+", default=[], metavar="T.csv",
                    help="labelled neuron table(s) to take names from (--template a.csv b.csv, or repeated); "
                         "default: the built-in reference panel")

@@ -71,6 +71,9 @@ def label_files(
     (:meth:`Identifier.label_panel_many`); ``adapt_colours``: the panel's colours are measured
     on the tests themselves, then they are named again (same method); ``use_atlas``: with
     templates, join the built-in atlas's own answer (:func:`napari_fdlc.identify.label_neurons`)."""
+    if not tests:
+        raise FdlcError("no test table given" + (": list the test tables before --template, which reads every table "
+                                                 "after it" if templates else ""))
     if top_k < 1:
         raise FdlcError(f"--top-k must be at least 1 (got {top_k})")
     if method not in ("fdlc", "cpd"):
