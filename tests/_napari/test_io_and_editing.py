@@ -236,3 +236,19 @@ def test_handedness_choice_reaches_the_model(labelled_viewer, monkeypatch):
     widget.chirality_combo.setCurrentIndex(widget.chirality_combo.findData("mirrored"))
     widget.relabel()
     assert seen == ["auto", "mirrored"] and widget.last_error is None
+
+
+def test_templates_of_another_handedness_are_mirrored_back_with_a_warning(make_napari_viewer, templates, monkeypatch):
+    from napari_fdlc.table import NeuronTable
+
+    viewer = make_napari_viewer()
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    shown = []
+    monkeypatch.setattr(widget, "_notify_warning", shown.append)
+    first = templates[0]
+    mirrored = NeuronTable(first.xyz * [1, 1, -1], first.colours, first.labels, source="mirrored.csv")
+    widget.set_templates([first, mirrored])
+    assert len(shown) == 1 and shown[0].startswith("mirrored.csv: mirrored relative to")
+    assert np.allclose(widget._templates()[0][1].xyz, first.xyz)
+    widget.set_templates([first, first])
+    assert len(shown) == 1
