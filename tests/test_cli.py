@@ -260,3 +260,14 @@ def test_templates_of_another_handedness_are_mirrored_back_once(tmp_path, table_
     assert len(err) == 1 and "mirrored.csv: mirrored relative to" in err[0]
     assert run("label", test, "--template", template, template, "--weights", untrained_weights, "--out", tmp_path / "a.csv") == 0
     assert capsys.readouterr().err == ""
+
+
+def test_a_table_not_in_micrometres_gets_a_warning(tmp_path, table_files, untrained_weights, worm, capsys):
+    test, template = table_files
+    in_nm = NeuronTable(worm.xyz * 1000, worm.colours, source="nm.csv")
+    write_table(in_nm, tmp_path / "nm.csv")
+    assert run("label", tmp_path / "nm.csv", "--template", template, "--weights", untrained_weights, "--out", tmp_path / "o.csv") == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nm.csv: the neurons span" in err[0] and "must be micrometres" in err[0]
+    assert run("label", test, "--template", template, "--weights", untrained_weights, "--out", tmp_path / "p.csv") == 0
+    assert capsys.readouterr().err == ""

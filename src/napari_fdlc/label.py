@@ -15,7 +15,7 @@ import pandas as pd
 from .errors import FdlcError, warn
 from .identify import ADAPT_MIN_TESTS, Identifier, default_identifier, harmonise, label_neurons
 from .match import Labelling, make_labelling, name_probabilities
-from .table import COORDS, NeuronTable, read_table, write_table
+from .table import COORDS, NeuronTable, implausible_scale, read_table, write_table
 
 
 def labelling_frame(test: NeuronTable, result: Labelling, top_k: int = 3) -> pd.DataFrame:
@@ -88,6 +88,10 @@ def label_files(
             raise FdlcError(f"{t.source}: the template has no named neuron (a 'label' column with names is needed)")
     if method == "fdlc":  # once here, so that label_neurons finds them harmonised and says nothing per test
         template_tables = harmonise(template_tables)
+    for t in [*test_tables, *template_tables]:
+        reason = implausible_scale(t)
+        if reason:
+            warn(reason)
     paths = _output_paths(tests, out)
     if shared_handedness and (template_tables or chirality != "auto"):
         warn("--shared-handedness is for the built-in panel with --chirality auto: ignored here")

@@ -113,6 +113,24 @@ class NeuronTable:
         return df
 
 
+# A whole adult worm is about 1 mm long and a nucleus a few µm across: neurons spread over more
+# than this, or packed into less than MIN_SPAN_UM, are not in micrometres.
+MAX_SPAN_UM = 2000.0
+MIN_SPAN_UM = 5.0
+
+
+def implausible_scale(table: "NeuronTable") -> str | None:
+    """A one-line reason when the neurons' extent cannot be micrometres (nanometres, metres,
+    or a table of indices), else None. Tables of fewer than 10 neurons are not judged."""
+    if len(table) < 10:
+        return None
+    span = float(np.ptp(table.xyz, axis=0).max())
+    if MIN_SPAN_UM <= span <= MAX_SPAN_UM:
+        return None
+    return (f"{table.source}: the neurons span {span:.3g} along their longest axis, which cannot be µm "
+            f"(a worm is ~1000 µm long, a head ~100 µm); x_um, y_um, z_um must be micrometres")
+
+
 def _clean(name) -> str:
     if name is None or (isinstance(name, float) and np.isnan(name)):
         return ""
