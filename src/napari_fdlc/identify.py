@@ -894,12 +894,13 @@ def harmonised_templates(templates: list[NeuronTable]) -> tuple[list[NeuronTable
     return out, flipped
 
 
-def harmonise(templates: list[NeuronTable]) -> list[NeuronTable]:
-    """:func:`harmonised_templates`, saying in one line on stderr which were mirrored back."""
+def harmonise(templates: list[NeuronTable], report=warn) -> list[NeuronTable]:
+    """:func:`harmonised_templates`, saying in one line which were mirrored back (``report``:
+    stderr by default; the napari widget shows a notification)."""
     templates, flipped = harmonised_templates(templates)
     if flipped:
-        warn(f"{', '.join(templates[k].source for k in flipped)}: mirrored relative to {templates[0].source} "
-             "(their names say so); used mirrored back, so that every template has one handedness")
+        report(f"{', '.join(templates[k].source for k in flipped)}: mirrored relative to {templates[0].source} "
+               "(their names say so); used mirrored back, so that every template has one handedness")
     return templates
 
 

@@ -503,13 +503,9 @@ class AutoLabelWidget(QWidget):
                     raise FdlcError(f"template {t!r}: give a NeuronTable or a CSV path")
                 if not t.named.any():
                     raise FdlcError(f"{t.source}: the template has no named neuron")
-            from ..identify import harmonised_templates
+            from ..identify import harmonise
 
-            tables, flipped = harmonised_templates(tables)
-            if flipped:
-                self._notify_warning(f"{', '.join(tables[k].source for k in flipped)}: mirrored relative to "
-                                     f"{tables[0].source}; used mirrored back, so that every template has one handedness")
-            self._script_templates = tables
+            self._script_templates = harmonise(tables, report=self._notify_warning)
         self._known_names = None
         self._refresh_choices()
         self.template_combo.setCurrentText(SCRIPTED if templates is not None else BUILTIN)
