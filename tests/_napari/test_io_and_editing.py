@@ -252,3 +252,18 @@ def test_templates_of_another_handedness_are_mirrored_back_with_a_warning(make_n
     assert np.allclose(widget._templates()[0][1].xyz, first.xyz)
     widget.set_templates([first, first])
     assert len(shown) == 1
+
+
+def test_a_template_file_not_in_micrometres_gets_a_warning(make_napari_viewer, templates, tmp_path, monkeypatch):
+    from napari_fdlc.table import NeuronTable, write_table
+
+    viewer = make_napari_viewer()
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    shown = []
+    monkeypatch.setattr(widget, "_notify_warning", shown.append)
+    first = templates[0]
+    write_table(first, tmp_path / "um.csv")
+    write_table(NeuronTable(first.xyz * 1000, first.colours, first.labels), tmp_path / "nm.csv")
+    assert widget.add_template_file(tmp_path / "um.csv") == "file: um.csv" and shown == []
+    assert widget.add_template_file(tmp_path / "nm.csv") == "file: nm.csv"
+    assert len(shown) == 1 and "must be micrometres" in shown[0]

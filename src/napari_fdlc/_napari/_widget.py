@@ -512,11 +512,14 @@ class AutoLabelWidget(QWidget):
 
     def add_template_file(self, path) -> str:
         """Read a labelled neuron table and offer it as a template (and choose it)."""
-        from ..table import read_table
+        from ..table import implausible_scale, read_table
 
         table = read_table(path)
         if not table.named.any():
             raise FdlcError(f"{path}: the table has no named neuron; a template needs names")
+        reason = implausible_scale(table)
+        if reason:  # a table in nm or mm is read, but names come out meaningless: say why
+            self._notify_warning(reason)
         name = f"file: {Path(path).name}"
         self._file_templates[name] = table
         self._refresh_choices()
