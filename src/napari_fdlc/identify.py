@@ -20,7 +20,7 @@ napari's plugin discovery stay fast.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -180,8 +180,6 @@ class Identifier:
 
     def with_settings(self, **changes) -> "Identifier":
         """The same model with some inference settings changed (the original is left alone)."""
-        from dataclasses import replace
-
         copy = Identifier(self.model, replace(self.settings, **changes), self.device)
         copy._traced = self._traced
         return copy
@@ -880,8 +878,6 @@ def harmonised_templates(templates: list[NeuronTable]) -> tuple[list[NeuronTable
     this way (held out, benchmarks/templates.py; what is left there is the test's own
     handedness). With ``--chirality same`` their top-3 lost 2-7 points: a template of the
     other handedness had kept the left/right partner among the candidates."""
-    from dataclasses import replace
-
     if len(templates) < 2:
         return list(templates), []
     first = canonical_frame(templates[0].xyz)[0]
@@ -915,7 +911,9 @@ def label_neurons(
     """Name the neurons of ``test``. Without templates the built-in reference panel is used
     (what Auto-label does); with templates, they are joined by the built-in atlas's own answer
     (unless ``use_atlas`` is False; see :meth:`Identifier.label`). ``fixed`` maps row indices to
-    names the user decided: they are kept and their names are not given to anyone else."""
+    names the user decided: they are kept and their names are not given to anyone else.
+    Several templates are used as given: :func:`harmonise` them first, once (``fdlc label`` and
+    the widget do), if they may come from recordings of different handedness."""
     from .reference import load_panel
 
     identifier = identifier or default_identifier()
@@ -924,6 +922,5 @@ def label_neurons(
     for t in templates:
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron")
-    templates = harmonise(templates)
     atlas = load_panel().atlas if use_atlas else None  # the panel is cached; its atlas with it
     return identifier.label(test, templates, use_colour=use_colour, fixed=fixed, atlas=atlas)

@@ -86,7 +86,7 @@ def label_files(
     for t in template_tables:
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron (a 'label' column with names is needed)")
-    if method == "fdlc":  # once here, so that label_neurons finds them harmonised and says nothing per test
+    if method == "fdlc":  # once for all the tests
         template_tables = harmonise(template_tables)
     for t in [*test_tables, *template_tables]:
         reason = implausible_scale(t)
