@@ -270,29 +270,34 @@ def test_the_doubt_about_the_handedness_mixes_in_the_other_answer(worm, other_wo
 
 
 def test_several_recordings_share_a_handedness_when_they_clearly_agree(monkeypatch):
-    """Identifier.label_panel_many: a sign test over the tests' evidence (stubbed here: each
-    test's mirrored-minus-same willingness is in its source) decides one handedness for all."""
+    """Identifier.label_panel_many: a sign test over the tests' votes decides one handedness for
+    all. Each test's evidence is stubbed: its source holds the mirrored-minus-same willingness
+    and registration score; a test whose two disagree does not vote."""
     from napari_fdlc.match import make_labelling
 
     def fake_label_panel(self, test, panel, use_colour=True, fixed=None):
-        evidence = float(test.source)
-        mirrored = {"same": False, "mirrored": True}.get(self.settings.chirality, evidence > self.settings.mirror_penalty)
-        info = {"willingness": [0.0, evidence - self.settings.mirror_penalty], "mirrored": mirrored}
+        will, reg = map(float, test.source.split())
+        mirrored = {"same": False, "mirrored": True}.get(self.settings.chirality, will > self.settings.mirror_penalty)
+        info = {"willingness": [0.0, will - self.settings.mirror_penalty], "registration": [0.0, reg], "mirrored": mirrored}
         return make_labelling(["A"], np.array([[0.5]]), info=info)
 
     monkeypatch.setattr(Identifier, "label_panel", fake_label_panel)
     ident = Identifier(CorrespondenceModel({"layers": 1, "dim": 32}), device="cpu")
 
     def tests(values):
-        return [NeuronTable(np.zeros((1, 3)), source=str(v)) for v in values]
+        return [NeuronTable(np.zeros((1, 3)), source=f"{w} {r}") for w, r in values]
 
-    # 11 of 12 lean mirrored, but weakly (below the prior): each alone stays "same"
-    leaning = ident.label_panel_many(tests([0.5] * 11 + [-0.3]), panel=None)
+    # 11 of 12 lean mirrored on both, but weakly (below the prior): each alone stays "same"
+    leaning = ident.label_panel_many(tests([(0.5, 0.1)] * 11 + [(-0.3, -0.1)]), panel=None)
     assert all(r.info["mirrored"] for r in leaning)
-    assert leaning[0].info["batch_handedness"] == {"decided": "mirrored", "lean_mirrored": 11, "tests": 12}
-    mixed = ident.label_panel_many(tests([0.5, -0.5] * 6), panel=None)
+    assert leaning[0].info["batch_handedness"] == {"decided": "mirrored", "lean_mirrored": 11, "votes": 12, "tests": 12}
+    # the model leans mirrored on all 12, the registration on 2: 2 votes, nothing decided
+    split = ident.label_panel_many(tests([(0.5, 0.1)] * 2 + [(0.5, -0.1)] * 10), panel=None)
+    assert not any(r.info["mirrored"] for r in split)
+    assert split[0].info["batch_handedness"] == {"decided": None, "lean_mirrored": 2, "votes": 2, "tests": 12}
+    mixed = ident.label_panel_many(tests([(0.5, 0.1), (-0.5, -0.1)] * 6), panel=None)
     assert not any(r.info["mirrored"] for r in mixed) and mixed[0].info["batch_handedness"]["decided"] is None
-    told = ident.with_chirality("same").label_panel_many(tests([0.5] * 12), panel=None)
+    told = ident.with_chirality("same").label_panel_many(tests([(0.5, 0.1)] * 12), panel=None)
     assert not any(r.info["mirrored"] for r in told) and "batch_handedness" not in told[0].info
 
 

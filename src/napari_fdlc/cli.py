@@ -31,13 +31,13 @@ def _label_parser(sub) -> None:
     p.add_argument("--chirality", choices=CHIRALITIES, default="auto",
                    help="handedness of the tests relative to the template(s) or the built-in atlas: auto (default) "
                         "tries both; same / mirrored when you know your microscope (see docs/cli.md)")
-    p.add_argument("--shared-handedness", action="store_true",
-                   help="with --chirality auto and no template: the tests come from one microscope, so name them all in "
-                        "one handedness when they clearly lean one way (a sign test; see docs/cli.md)")
+    p.add_argument("--shared-handedness", action=argparse.BooleanOptionalAction, default=None,
+                   help="with several tests, --chirality auto and no template (the default there): the tests come from "
+                        "one microscope, so name them all in one handedness when they clearly lean one way (a sign "
+                        "test; see docs/cli.md); --no-shared-handedness decides for each test alone")
     p.add_argument("--adapt-colours", "--adapt-colors", dest="adapt_colours", action="store_true",
                    help="with no template and at least 3 tests from one microscope: measure the panel's colour per "
-                        "name on the tests' confident names, then name them again; use with --shared-handedness or "
-                        "--chirality (see docs/cli.md)")
+                        "name on the tests' confident names, then name them again (see docs/cli.md)")
     p.add_argument("--no-atlas", dest="use_atlas", action="store_false",
                    help="with --template: names from the template(s) alone, without the built-in atlas's own answer")
     p.add_argument("--out", required=True, help="output CSV (one test) or directory (several tests)")

@@ -680,7 +680,8 @@ class Identifier:
             other = {n: other_probs[:, i] for i, n in enumerate(other_names)}
             probs = (1 - doubt) * chosen + doubt * np.stack([other.get(n, np.zeros(len(test))) for n in names], axis=1)
         probs = _sharpen(probs, self.settings.panel_temperature)
-        info = {"colour": use_colour, "mirrored": placements[best].mirrored, "willingness": willingness.tolist()}
+        info = {"colour": use_colour, "mirrored": placements[best].mirrored, "willingness": willingness.tolist(),
+                "registration": [p.score for p in placements]}
         return make_labelling(names, probs, fixed, info, self.settings.no_match_weight,
                               assign_probs=with_atlas(names, names_and_probs(answers, calibrated=False)[1], best))
 
@@ -691,17 +692,9 @@ class Identifier:
         together what one worm cannot show. ``first``: the tests' :meth:`label_panel` answers
         when already made.
 
-        ``share_handedness``: one handedness for all of them when they agree (handedness is a
-        property of the microscope). On ``auto``, each test's evidence is the model's
-        willingness to match its mirrored placement minus that of the other (no prior); when
-        significantly many tests lean one way (one-sided sign test, p < ``BATCH_HANDEDNESS_P``)
-        every test is named in that handedness, else each keeps its own choice. Per worm the
-        evidence is weak (right for 50-83 % of the worms of a lab the model never saw); of the
-        corpus labs only SF's count is significant (33 of its 36 worms lean mirrored; 33 are
-        mirrored relative to the atlas), and the others are left to each worm. But a lab can
-        lean the wrong way (the shipped model: 7 of KK's 9 worms, 2 of which are mirrored), so
-        ``fdlc label`` does this only when asked (``--shared-handedness``).
-        ``info["batch_handedness"]`` says what was decided.
+        ``share_handedness``: on ``auto``, one handedness for all of them when their evidence
+        clearly agrees (:func:`decide_handedness`; handedness is a property of the microscope),
+        else each keeps its own choice. ``info["batch_handedness"]`` says what was decided.
 
         ``adapt_colours`` (with colour, from ``ADAPT_MIN_TESTS`` tests): then the atlas's colour
         per name is measured on the tests themselves, from the names given with confidence
@@ -727,22 +720,14 @@ class Identifier:
     def _shared_handedness(self, tests: list[NeuronTable], panel: Panel, use_colour: bool,
                            results: list[Labelling]) -> list[Labelling]:
         """The sign test of :meth:`label_panel_many` over the tests' answers ``results``."""
-        from scipy.stats import binomtest
-
         if self.settings.chirality != "auto" or len(tests) < 2:
             return results
-        evidence = np.array([r.info["willingness"][1] - r.info["willingness"][0] for r in results])
-        evidence = evidence + self.settings.mirror_penalty  # the willingness includes the prior
-        k, n = int((evidence > 0).sum()), len(tests)
-        decided = None
-        if binomtest(k, n, 0.5, alternative="greater").pvalue < BATCH_HANDEDNESS_P:
-            decided = "mirrored"
-        elif binomtest(k, n, 0.5, alternative="less").pvalue < BATCH_HANDEDNESS_P:
-            decided = "same"
+        evidence = np.array([handedness_evidence(r, self.settings.mirror_penalty) for r in results])
+        decided, k, n = decide_handedness(evidence[:, 0], evidence[:, 1])
         for i, r in enumerate(results):
             if decided and r.info["mirrored"] != (decided == "mirrored"):
                 results[i] = self.with_chirality(decided).label_panel(tests[i], panel, use_colour)
-            results[i].info["batch_handedness"] = {"decided": decided, "lean_mirrored": k, "tests": n}
+            results[i].info["batch_handedness"] = {"decided": decided, "lean_mirrored": k, "votes": n, "tests": len(tests)}
         return results
 
     def _check(self, test: NeuronTable, templates: list[NeuronTable], use_colour: bool) -> bool:
@@ -758,6 +743,38 @@ class Identifier:
                 warn("no colour channel in common with the template(s): identifying by position only")
             use_colour = False
         return use_colour
+
+
+def handedness_evidence(result: Labelling, mirror_penalty: float) -> tuple[float, float]:
+    """Of a :meth:`Identifier.label_panel` answer made on ``auto``: its mirrored placement's
+    score minus the other's, by the model's willingness to match (without the prior) and by
+    the registration's likelihood."""
+    willingness, registration = result.info["willingness"], result.info["registration"]
+    return willingness[1] - willingness[0] + mirror_penalty, registration[1] - registration[0]
+
+
+def decide_handedness(willingness, registration=None) -> tuple[str | None, int, int]:
+    """One handedness for several recordings from their evidence (:func:`handedness_evidence`):
+    a recording votes for the side its two pieces of evidence lean to, and abstains when they
+    disagree (``registration`` None: the willingness alone votes); "mirrored" or "same" when
+    significantly many votes go one way (one-sided sign test, p < ``BATCH_HANDEDNESS_P``), else
+    None. Returns (decided, votes for mirrored, votes).
+
+    Per worm either piece is weak (right for 22-89 % of the worms of a lab the model never
+    saw), and a lab can lean the wrong way on one: with an atlas built without KK, the shipped
+    model's willingness leans mirrored on 8 of KK's 9 worms (2 are), its registration on 1.
+    On batches of 30 recordings resampled from each corpus lab, the willingness alone decided
+    206 of 2000 wrongly, the two together 1 (benchmarks/handedness.py)."""
+    from scipy.stats import binomtest
+
+    willingness = np.asarray(willingness, dtype=float)
+    registration = willingness if registration is None else np.asarray(registration, dtype=float)
+    votes = (np.sign(willingness) == np.sign(registration)) & (willingness != 0)
+    k, n = int((votes & (willingness > 0)).sum()), int(votes.sum())
+    for decided, side in (("mirrored", "greater"), ("same", "less")):
+        if n and binomtest(k, n, 0.5, alternative=side).pvalue < BATCH_HANDEDNESS_P:
+            return decided, k, n
+    return None, k, n
 
 
 def _add_evidence(log_p: np.ndarray, evidence: np.ndarray | None) -> np.ndarray:

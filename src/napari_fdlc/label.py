@@ -62,13 +62,14 @@ def label_files(
     method: str = "fdlc",
     weights: str | None = None,
     chirality: str = "auto",
-    shared_handedness: bool = False,
+    shared_handedness: bool | None = None,
     use_atlas: bool = True,
     adapt_colours: bool = False,
 ) -> list[Path]:
     """Label each test table and write one CSV per test. Returns the paths written.
     ``shared_handedness``: the panel names the tests in one handedness when they clearly agree
-    (:meth:`Identifier.label_panel_many`); ``adapt_colours``: the panel's colours are measured
+    (:meth:`Identifier.label_panel_many`; None: wherever it applies, i.e. several tests, the
+    panel, ``auto``); ``adapt_colours``: the panel's colours are measured
     on the tests themselves, then they are named again (same method); ``use_atlas``: with
     templates, join the built-in atlas's own answer (:func:`napari_fdlc.identify.label_neurons`)."""
     if not tests:
@@ -93,8 +94,10 @@ def label_files(
         if reason:
             warn(reason)
     paths = _output_paths(tests, out)
-    if shared_handedness and (template_tables or chirality != "auto"):
+    applies = not template_tables and chirality == "auto"
+    if shared_handedness and not applies:
         warn("--shared-handedness is for the built-in panel with --chirality auto: ignored here")
+    shared_handedness = applies and len(test_tables) > 1 and shared_handedness is not False
     if adapt_colours and (template_tables or not use_colour or len(test_tables) < ADAPT_MIN_TESTS):
         warn(f"--adapt-colours is for the built-in panel with colour and at least {ADAPT_MIN_TESTS} tests: ignored here")
     if method == "fdlc":
@@ -109,8 +112,9 @@ def label_files(
                                                   adapt_colours=adapt_colours)
             batch = results[0].info.get("batch_handedness") or {}
             if batch.get("decided"):
-                warn(f"{batch['lean_mirrored']} of {batch['tests']} recordings lean mirrored relative to the atlas: "
-                     f"all are named as '{batch['decided']}' (pass --chirality to decide yourself)")
+                warn(f"{batch['lean_mirrored']} of the {batch['votes']} recordings (of {batch['tests']}) whose model and "
+                     f"registration agree lean mirrored relative to the atlas: all are named as '{batch['decided']}' "
+                     "(--chirality decides yourself; --no-shared-handedness lets each recording decide alone)")
     else:
         results = [cpd_labelling(t, template_tables, use_colour) for t in test_tables]
     if len(paths) > 1:
