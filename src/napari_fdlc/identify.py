@@ -163,6 +163,7 @@ class Identifier:
         self.settings = settings or InferenceSettings()
         self._traced: dict = {}  # see _model_pass; shared with copies made by with_settings
         self._mean_worm: tuple = (None, None)  # (atlas, its mean worm) for _atlas_worm_answer
+        self._template_handedness: tuple = (None, None, None)  # (atlas, template, mirrored) for _atlas_placement
 
     @classmethod
     def load(cls, path: str | Path | None = None, device: str | None = None) -> "Identifier":
@@ -587,7 +588,11 @@ class Identifier:
         template is labelled, so its names give its handedness relative to the atlas, and with
         the model's choice for the test relative to the template, the test's (None when the
         template shares fewer than 4 names with the atlas)."""
-        template_mirrored = mirrored_by_names(atlas.names, atlas.mean, template, min_names=4)
+        # The template's handedness relative to the atlas, once per template (2 ms a time)
+        cached_atlas, cached_template, _ = self._template_handedness
+        if cached_atlas is not atlas or cached_template is not template:
+            self._template_handedness = (atlas, template, mirrored_by_names(atlas.names, atlas.mean, template, min_names=4))
+        template_mirrored = self._template_handedness[2]
         if template_mirrored is None:
             return None
         mirrored = bool(template_mirrored) != bool(mirrored_to_template)
