@@ -205,9 +205,9 @@ def test_label_names_a_lab_of_mirrored_recordings_in_one_call(tmp_path, corpus_p
             right += ((truth == named) & (truth != "")).sum()
         return right / total
 
-    assert run("label", *tests, "--out", tmp_path / "together") == 0
+    assert run("label", *tests, "--no-adapt-colours", "--out", tmp_path / "together") == 0
     assert "all are named as 'mirrored'" in capsys.readouterr().err
-    assert run("label", *tests, "--no-shared-handedness", "--out", tmp_path / "alone") == 0
+    assert run("label", *tests, "--no-adapt-colours", "--no-shared-handedness", "--out", tmp_path / "alone") == 0
     assert "all are named" not in capsys.readouterr().err
     assert top1(tmp_path / "together") > 0.6 > top1(tmp_path / "alone") + 0.3
 
@@ -224,14 +224,23 @@ def test_shared_handedness_says_when_it_does_not_apply(tmp_path, capsys):
 
 
 def test_adapt_colours_names_several_recordings_again_and_says_when_it_does_not_apply(tmp_path, capsys):
+    """Three tests or more with colour on the panel: their colours adapt the panel by default
+    (the same names and probabilities as --adapt-colours; --no-adapt-colours differs). Asked
+    for where it cannot apply, one line says so."""
     from napari_fdlc.reference import generate_worm
 
     tests = [tmp_path / f"t{s}.csv" for s in range(3)]
     for s, path in enumerate(tests):
         write_table(generate_worm(seed=20 + s), path)
-    assert run("label", *tests, "--adapt-colours", "--chirality", "same", "--out", tmp_path / "out") == 0
-    assert capsys.readouterr().err == ""
-    assert all(len(pd.read_csv(tmp_path / "out" / f"t{s}.csv")) == len(generate_worm(seed=20 + s)) for s in range(3))
+    outputs = {}
+    for how in ("default", "--adapt-colours", "--no-adapt-colours"):
+        flags = [] if how == "default" else [how]
+        assert run("label", *tests, *flags, "--chirality", "same", "--out", tmp_path / how) == 0
+        assert capsys.readouterr().err == ""
+        outputs[how] = [pd.read_csv(tmp_path / how / f"t{s}.csv", keep_default_na=False) for s in range(3)]
+    assert all(len(outputs["default"][s]) == len(generate_worm(seed=20 + s)) for s in range(3))
+    assert all(a.equals(b) for a, b in zip(outputs["default"], outputs["--adapt-colours"]))
+    assert not all(a.equals(b) for a, b in zip(outputs["default"], outputs["--no-adapt-colours"]))
     assert run("label", tests[0], "--adapt-colours", "--out", tmp_path / "one.csv") == 0
     err = capsys.readouterr().err
     assert "--adapt-colours is for the built-in panel" in err and len(err.strip().splitlines()) == 1

@@ -35,9 +35,11 @@ def _label_parser(sub) -> None:
                    help="with several tests, --chirality auto and no template (the default there): the tests come from "
                         "one microscope, so name them all in one handedness when they clearly lean one way (a sign "
                         "test; see docs/cli.md); --no-shared-handedness decides for each test alone")
-    p.add_argument("--adapt-colours", "--adapt-colors", dest="adapt_colours", action="store_true",
-                   help="with no template and at least 3 tests from one microscope: measure the panel's colour per "
-                        "name on the tests' confident names, then name them again (see docs/cli.md)")
+    p.add_argument("--adapt-colours", "--adapt-colors", dest="adapt_colours", action=argparse.BooleanOptionalAction,
+                   default=None,
+                   help="with no template, colour and at least 3 tests (the default there): measure the panel's colour "
+                        "per name on the tests' confident names, then name them again (see docs/cli.md); "
+                        "--no-adapt-colours names each test with the panel as it ships")
     p.add_argument("--no-atlas", dest="use_atlas", action="store_false",
                    help="with --template: names from the template(s) alone, without the built-in atlas's own answer")
     p.add_argument("--out", required=True, help="output CSV (one test) or directory (several tests)")

@@ -709,7 +709,7 @@ class Identifier:
         results = list(first) if first is not None else [self.label_panel(t, panel, use_colour) for t in tests]
         if share_handedness:
             results = self._shared_handedness(tests, panel, use_colour, results)
-        if not (adapt_colours and use_colour and len(tests) >= ADAPT_MIN_TESTS):
+        if not (adapt_colours and can_adapt_colours(tests, use_colour)):
             return results
         from .reference import make_panel
 
@@ -748,6 +748,13 @@ class Identifier:
                 warn("no colour channel in common with the template(s): identifying by position only")
             use_colour = False
         return use_colour
+
+
+def can_adapt_colours(tests: list[NeuronTable], use_colour: bool = True) -> bool:
+    """Whether :meth:`Identifier.label_panel_many` can measure the panel's colours on these
+    tests: with colour, and ``ADAPT_MIN_TESTS`` of them or more having R, G and B."""
+    coloured = [t for t in tests if all(c in t.colours for c in colour_model.IDENTITY_CHANNELS)]
+    return use_colour and len(coloured) >= ADAPT_MIN_TESTS
 
 
 def handedness_evidence(result: Labelling, mirror_penalty: float) -> tuple[float, float]:

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import FdlcError, warn
-from .identify import ADAPT_MIN_TESTS, Identifier, default_identifier, harmonise, label_neurons
+from .identify import ADAPT_MIN_TESTS, Identifier, can_adapt_colours, default_identifier, harmonise, label_neurons
 from .match import Labelling, make_labelling, name_probabilities
 from .table import COORDS, NeuronTable, implausible_scale, read_table, write_table
 
@@ -64,13 +64,14 @@ def label_files(
     chirality: str = "auto",
     shared_handedness: bool | None = None,
     use_atlas: bool = True,
-    adapt_colours: bool = False,
+    adapt_colours: bool | None = None,
 ) -> list[Path]:
     """Label each test table and write one CSV per test. Returns the paths written.
     ``shared_handedness``: the panel names the tests in one handedness when they clearly agree
     (:meth:`Identifier.label_panel_many`; None: wherever it applies, i.e. several tests, the
     panel, ``auto``); ``adapt_colours``: the panel's colours are measured
-    on the tests themselves, then they are named again (same method); ``use_atlas``: with
+    on the tests themselves, then they are named again (same method; None: wherever it applies,
+    i.e. the panel with colour in at least ``ADAPT_MIN_TESTS`` tests); ``use_atlas``: with
     templates, join the built-in atlas's own answer (:func:`napari_fdlc.identify.label_neurons`)."""
     if not tests:
         raise FdlcError("no test table given" + (": list the test tables before --template, which reads every table "
@@ -98,8 +99,10 @@ def label_files(
     if shared_handedness and not applies:
         warn("--shared-handedness is for the built-in panel with --chirality auto: ignored here")
     shared_handedness = applies and len(test_tables) > 1 and shared_handedness is not False
-    if adapt_colours and (template_tables or not use_colour or len(test_tables) < ADAPT_MIN_TESTS):
-        warn(f"--adapt-colours is for the built-in panel with colour and at least {ADAPT_MIN_TESTS} tests: ignored here")
+    adapts = not template_tables and can_adapt_colours(test_tables, use_colour)
+    if adapt_colours and not adapts:
+        warn(f"--adapt-colours is for the built-in panel with colour (R, G, B) in at least {ADAPT_MIN_TESTS} tests: ignored here")
+    adapt_colours = adapts and adapt_colours is not False
     if method == "fdlc":
         from .reference import load_panel
 
