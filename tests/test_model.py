@@ -433,16 +433,20 @@ def test_recordings_of_one_microscope_are_named_again_with_their_own_colours(mon
         assert "adapted_colours" not in few_or_grey[0].info
 
 
-def test_the_atlas_worm_answer_is_averaged_with_the_template_at_its_weight(identifier, worm, other_worm, assigned):
+def test_the_atlas_worm_answer_is_averaged_with_the_template_at_its_weight(identifier, worm, other_worm, assigned,
+                                                                           monkeypatch):
     """At ``atlas_worm_weight`` w the answer names are assigned on is (1 - w) × the template's
     + w × the model's answer against the atlas's mean worm — which is what a panel of that one
-    worm answers, in the template's names."""
+    worm answers, in the template's names (the panel's registration without its z stretch,
+    which the template path does not use)."""
+    import napari_fdlc.reference as reference
     from napari_fdlc.reference import Panel, atlas_worm, load_atlas
 
     atlas = load_atlas()
     same = identifier.with_settings(chirality="same", template_chirality_doubt=0.0)
     for weight in (0.0, 1.0, 0.5):
         same.with_settings(atlas_worm_weight=weight).label(other_worm, [worm], atlas=atlas)
+    monkeypatch.setattr(reference, "ATLAS_Z_SCALE_RANGE", (1.0, 1.0))
     same.label_panel(other_worm, Panel(atlas, [atlas_worm(atlas)]))
     (names, alone), (_, worm_only), (_, half), (panel_names, panel) = assigned
     column = {n: i for i, n in enumerate(panel_names)}

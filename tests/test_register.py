@@ -136,3 +136,40 @@ def test_the_atlas_posterior_names_a_posed_worm_without_the_model():
         assert resp.shape == (len(posed), len(atlas.names)) and np.allclose(resp.sum(1) + none, 1.0)
         right[mirrored] = np.mean(atlas.names[resp.argmax(1)] == posed.labels)
     assert right[True] > 0.8 and right[False] < right[True] - 0.2
+
+
+def test_registration_onto_the_atlas_undoes_a_stretch_along_the_optical_axis():
+    """Labs differ in apparent z scale (refractive-index mismatch, z-step calibration): the
+    atlas's own mean worm recorded with its z squeezed to 0.8 lands back on the atlas, because
+    the registration stretches the test along its own z (Mixture.z_scale_range); without that
+    it stays further off."""
+    from dataclasses import replace
+
+    from napari_fdlc.table import NeuronTable
+
+    atlas = load_atlas()
+    mean_worm = NeuronTable(atlas.mean, {c: atlas.colour[:, i] for i, c in enumerate("RGB")}, atlas.names)
+    posed = _posed(mean_worm, 20, False, np.random.default_rng(3))
+    squeezed = NeuronTable(posed.xyz * [1.0, 1.0, 0.8], posed.colours, posed.labels)
+    errors = {}
+    for stretch in (atlas.mixture().z_scale_range, (1.0, 1.0)):
+        placed = register(squeezed, replace(atlas.mixture(), z_scale_range=stretch), chiralities=(False,))[0]
+        errors[stretch] = np.median(np.linalg.norm(placed.xyz - atlas.mean, axis=1))
+    assert errors[atlas.mixture().z_scale_range] < 1.0 < errors[(1.0, 1.0)], errors
+
+
+def test_a_colour_channel_the_test_lacks_is_left_out_not_all_colour():
+    """Colour columns need not all be present (the table contract): without B, the atlas's
+    answer still uses R and G, and names a posed worm better than from positions alone."""
+    from napari_fdlc.table import NeuronTable
+
+    atlas = load_atlas()
+    rng = np.random.default_rng(4)
+    worm = atlas_worm(atlas, rng, spread=1.0)
+    posed = _posed(worm, 30.0, False, rng)
+    without_b = NeuronTable(posed.xyz, {c: v for c, v in posed.colours.items() if c != "B"}, posed.labels)
+    right = {}
+    for use_colour in (True, False):
+        resp, _ = atlas.posterior(without_b, use_colour=use_colour)
+        right[use_colour] = np.mean(atlas.names[resp.argmax(1)] == posed.labels)
+    assert right[True] > right[False] + 0.1, right

@@ -596,7 +596,10 @@ class Identifier:
         if template_mirrored is None:
             return None
         mirrored = bool(template_mirrored) != bool(mirrored_to_template)
-        return atlas.register(test, use_colour, chiralities=(mirrored,))[0]
+        # Without the z stretch of the panel's registration: beside a template it took pairs
+        # with colour up 0.1-2.3 points but, the settings refitted, SF's position-only pairs
+        # below the non-learned floor (held out, 32.9 -> 23.2 %; docs/benchmarks.md).
+        return atlas.register(test, use_colour, chiralities=(mirrored,), stretch_z=False)[0]
 
     def _atlas_worm_answer(self, test: NeuronTable, atlas: Atlas, placed: np.ndarray, names: list[str],
                            probs: np.ndarray, assign_probs: np.ndarray, use_colour: bool):

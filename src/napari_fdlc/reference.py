@@ -54,6 +54,9 @@ PANEL_SAMPLES = 9
 PANEL_SPREAD = 0.5
 PANEL_SEED = 0
 _REGISTRATION_SD = 1.5  # µm added to each name's spread when registering (Atlas.mixture)
+# The test's stretch along its z, see register.Mixture.z_scale_range (used by the panel; a
+# template's test is placed on the atlas without it: identify.Identifier._atlas_placement).
+ATLAS_Z_SCALE_RANGE = (0.75, 1.33)
 
 
 @dataclass
@@ -69,18 +72,21 @@ class Atlas:
     # A median corpus worm in µm is this many times the atlas (Procrustes shrinks the atlas)
     worm_scale: float = 1.0
 
-    def mixture(self) -> Mixture:
+    def mixture(self, stretch_z: bool = True) -> Mixture:
         """The atlas as a mixture for :func:`napari_fdlc.register.register`: each name's spread
         plus ``_REGISTRATION_SD`` (segmentation error, residual pose), weighted by how often it
         is named; the scale is free within bounds (the atlas is smaller than real worms); a
-        test showing part of the head is also tried at offsets along the body axis."""
+        test showing part of the head is also tried at offsets along the body axis; with
+        ``stretch_z``, the test is stretched along its own z within ``ATLAS_Z_SCALE_RANGE``."""
         return Mixture(self.mean, self.sd**2 + _REGISTRATION_SD**2, np.log(np.maximum(self.frequency, 1e-6)),
                        self.colour, self.colour_sd**2, scale_range=(0.8, 1.25), partial_views=True,
-                       partial_view_scale=1 / self.worm_scale)
+                       partial_view_scale=1 / self.worm_scale,
+                       z_scale_range=ATLAS_Z_SCALE_RANGE if stretch_z else (1.0, 1.0))
 
-    def register(self, test: NeuronTable, use_colour: bool = True, chiralities=(False, True)) -> list[Placement]:
+    def register(self, test: NeuronTable, use_colour: bool = True, chiralities=(False, True),
+                 stretch_z: bool = True) -> list[Placement]:
         """``test`` placed in the atlas frame, once per chirality (see napari_fdlc.register.register)."""
-        return register(test, self.mixture(), use_colour, chiralities=chiralities)
+        return register(test, self.mixture(stretch_z), use_colour, chiralities=chiralities)
 
     def posterior(self, test: NeuronTable, use_colour: bool = True, mirrored: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """``test`` placed in one handedness, then the probability (N, names) that each of its

@@ -638,7 +638,8 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
                    tuple(t.tobytes() for t in templates), tuple(t.tobytes() for t in tests), tc is not None)),
                (identifier, "place", lambda template, tests, use_colour=True: (
                    id(template), tuple(map(id, tests)), use_colour))]
-    patched += [(panel.atlas, "register", lambda test, use_colour=True, chiralities=(False, True): (id(test), use_colour, chiralities))
+    patched += [(panel.atlas, "register", lambda test, use_colour=True, chiralities=(False, True), stretch_z=True: (
+                    id(test), use_colour, chiralities, stretch_z))
                 for panel, _ in (panel_tests or {}).values()]
     for owner, name, key in patched:
         setattr(owner, name, cached(getattr(owner, name), key))
