@@ -777,9 +777,9 @@ def decide_handedness(willingness, registration=None) -> tuple[str | None, int, 
 
     Per worm either piece is weak (right for 22-89 % of the worms of a lab the model never
     saw), and a lab can lean the wrong way on one: with an atlas built without KK, the shipped
-    model's willingness leans mirrored on 8 of KK's 9 worms (2 are), its registration on 1.
+    model's willingness leans mirrored on 7 of KK's 9 worms (2 are), its registration on 1.
     On batches of 30 recordings resampled from each corpus lab, the willingness alone decided
-    206 of 2000 wrongly, the two together 1 (benchmarks/handedness.py)."""
+    165 of 2000 wrongly, the two together 1 (benchmarks/handedness.py)."""
     from scipy.stats import binomtest
 
     willingness = np.asarray(willingness, dtype=float)
