@@ -20,14 +20,11 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
+from _folds import held_out_lab  # noqa: E402
 from napari_fdlc.corpus import LABS, load_corpus  # noqa: E402
-from napari_fdlc.evaluate import Scores, mirrored_relative_to  # noqa: E402
-from napari_fdlc.identify import Identifier  # noqa: E402
-from napari_fdlc.reference import build_atlas, make_panel  # noqa: E402
+from napari_fdlc.evaluate import Scores  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -41,11 +38,7 @@ def main(argv=None) -> int:
     lines = ["| held-out lab X | not adapted | adapted on X alone | " + " | ".join(f"adapted with {y}'s worms" for y in others) + " |",
              "|---|---|---|" + "---|" * len(others)]
     for lab in args.labs:
-        atlas = build_atlas([w for w in worms if w.lab != lab])
-        panel = make_panel(atlas)
-        tests = [w.table for w in worms if w.lab == lab]
-        majority = np.mean([mirrored_relative_to(atlas, t) for t in tests]) > 0.5
-        identifier = Identifier.load(Path(args.runs) / f"fold_{lab}" / "model").with_chirality("mirrored" if majority else "same")
+        panel, tests, identifier = held_out_lab(worms, lab, args.runs)
 
         def top1(results):
             scores = Scores()

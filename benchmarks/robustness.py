@@ -25,10 +25,9 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
+from _folds import held_out_lab  # noqa: E402
 from napari_fdlc.corpus import LABS, load_corpus  # noqa: E402
-from napari_fdlc.evaluate import Scores, mirrored_relative_to  # noqa: E402
-from napari_fdlc.identify import Identifier  # noqa: E402
-from napari_fdlc.reference import build_atlas, make_panel  # noqa: E402
+from napari_fdlc.evaluate import Scores  # noqa: E402
 from napari_fdlc.table import NeuronTable  # noqa: E402
 
 
@@ -117,11 +116,7 @@ def main(argv=None) -> int:
     worms = load_corpus(args.corpus)
     lines = ["| held-out lab | " + " | ".join(TRANSFORMS) + " |", "|---|" + "---|" * len(TRANSFORMS)]
     for lab in args.labs:
-        atlas = build_atlas([w for w in worms if w.lab != lab])
-        panel = make_panel(atlas)
-        tests = [w.table for w in worms if w.lab == lab][: args.worms]
-        majority = np.mean([mirrored_relative_to(atlas, t) for t in tests]) > 0.5
-        identifier = Identifier.load(Path(args.runs) / f"fold_{lab}" / "model").with_chirality("mirrored" if majority else "same")
+        panel, tests, identifier = held_out_lab(worms, lab, args.runs, args.worms)
         cells = []
         for k, transform in enumerate(TRANSFORMS.values()):
             rng = np.random.default_rng(k)
