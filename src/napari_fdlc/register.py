@@ -131,17 +131,17 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     coarse = np.concatenate([_log_likelihood(log_components(o)).sum(axis=-1) for o in offsets])
     chosen = np.concatenate([np.flatnonzero(mirrored == m)[np.argsort(-coarse[mirrored == m])[:keep]] for m in chiralities])
     points = starts[chosen]  # EM from every kept start at once: (S, N, 3)
-    # points = (canon stretched along z by stretch) @ linear + shift, kept for the z stretch
-    linear = np.transpose(rotations[chosen], (0, 2, 1))
-    stretch = np.ones(len(chosen), f32)
     stretchable = mixture.z_scale_range != (1.0, 1.0)
+    if stretchable:  # points = (canon stretched along z by stretch) @ linear + shift
+        linear = np.transpose(rotations[chosen], (0, 2, 1))
+        stretch = np.ones(len(chosen), f32)
     for _ in range(iterations):
         resp = responsibilities(log_components(points))
         weight = resp.sum(axis=-1)
         targets = (resp @ mean) / np.maximum(weight[..., None], 1e-12)
         points, scale, rotation = _weighted_similarity(points, targets, weight, mixture.scale_range)
-        linear = scale[:, None, None] * linear @ rotation
         if stretchable:
+            linear = scale[:, None, None] * linear @ rotation
             points, stretch = _stretch_z(points, targets, weight, canon[:, 2], linear[:, 2], stretch, mixture.z_scale_range)
     scores = _log_likelihood(log_components(points)).mean(axis=-1, dtype=np.float64)
     points = points.astype(np.float64)
