@@ -181,7 +181,7 @@ def _component_terms(test: NeuronTable, mixture: Mixture, use_colour: bool):
 def _log_components(points, inv_var, weighted_mean, constant):
     """(..., N, K): log weight × density of each component at each point. The Mahalanobis
     distance is expanded into one matrix product of [points², points] (..·N, 6) with the
-    components' [-inverse variance / 2, mean / inverse variance] (6, K): 10× faster than
+    components' [-1 / (2 variance), mean / variance] (6, K): 10× faster than
     broadcasting, and 12× faster again than two stacked products with an inner size of 3 (48
     starts of a 130-neuron test: 4.5 → 0.4 ms)."""
     flat = points.reshape(-1, points.shape[-1])
@@ -198,9 +198,8 @@ def _log_likelihood(comp: np.ndarray, responsibilities: bool = False):
     from the same exponentials. ``comp`` is overwritten: these arrays are megabytes (48 starts),
     and a new one per step cost more than the arithmetic (page faults)."""
     top = np.maximum(comp.max(axis=-1), _OUTLIER_LOG_DENSITY)
-    share = comp
-    share -= top[..., None]
-    np.exp(share, out=share)
+    comp -= top[..., None]
+    share = np.exp(comp, out=comp)  # each component's density relative to the top one
     total = share.sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - top)
     log_likelihood = top + np.log(total)
     if not responsibilities:
