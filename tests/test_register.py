@@ -188,7 +188,8 @@ def test_mixture_densities_match_their_definition():
     constant = rng.normal(0, 1, (5, 7))  # per point and component, as the colour term is
     points = rng.normal(0, 10, (4, 5, 3))
     direct = constant - 0.5 * (((points[..., None, :] - mean) ** 2) / var).sum(-1)
-    comp = _log_components(points, 1 / var, mean / var, constant - 0.5 * (mean**2 / var).sum(1))
+    coefficients = np.concatenate([-0.5 / var, mean / var], axis=1).T
+    comp = _log_components(points, coefficients, constant - 0.5 * (mean**2 / var).sum(1))
     assert np.allclose(comp, direct)
     with_outlier = np.concatenate([direct, np.full(direct.shape[:-1] + (1,), _OUTLIER_LOG_DENSITY)], axis=-1)
     expected = logsumexp(with_outlier, axis=-1)
