@@ -102,13 +102,78 @@ def test_console_script_no_traceback(tmp_path):
     assert proc.stderr.strip().count("\n") == 0 and "Traceback" not in proc.stderr
 
 
-def test_one_neuron_test(tmp_path, table_files, untrained_weights):
+def test_one_neuron_test(tmp_path, table_files, untrained_weights, capsys):
     _, template = table_files
     one = tmp_path / "one.csv"
     write_table(NeuronTable(np.array([[10.0, 5.0, 3.0]])), one)
     out = tmp_path / "one_out.csv"
     assert run("label", one, "--template", template, "--weights", untrained_weights, "--out", out) == 0
     assert len(pd.read_csv(out)) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert any("only 1 neuron(s)" in line and "guesses" in line for line in err), err
+
+
+def test_a_few_neurons_get_no_confident_atlas_answer(worm, other_worm):
+    """Beside a template the atlas's registration fits any handful of points, so its answer is
+    left out below FEW_NEURONS neurons: one neuron was named at 0.9999 with it."""
+    from napari_fdlc.identify import FEW_NEURONS, default_identifier, label_neurons
+
+    few = other_worm.subset(np.arange(FEW_NEURONS - 1))
+    result = label_neurons(few, [worm], identifier=default_identifier())
+    assert result.info["atlas"] is False
+    assert label_neurons(other_worm.subset(np.arange(40)), [worm], identifier=default_identifier()).info["atlas"] is True
+
+
+@pytest.mark.parametrize("case", ["over_the_test", "over_the_template", "file_as_folder", "several_into_a_file"])
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(tmp_path, table_files, untrained_weights, capsys, case):
+    test, template = table_files
+    before = {p: p.read_bytes() for p in (test, template)}
+    tests, out = {
+        "over_the_test": ([test], test),
+        "over_the_template": ([test], template),
+        "file_as_folder": ([test], test / "out.csv"),
+        "several_into_a_file": ([test, template], template / "sub"),
+    }[case]
+    assert run("label", *tests, "--template", template, "--weights", untrained_weights, "--out", out) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("fdlc: error:"), err
+    assert {p: p.read_bytes() for p in before} == before
+
+
+def test_an_out_ending_in_a_slash_is_a_folder_even_for_one_test(tmp_path, table_files, untrained_weights):
+    test, template = table_files
+    assert run("label", test, "--template", template, "--weights", untrained_weights, "--out", f"{tmp_path / 'ids'}/") == 0
+    assert (tmp_path / "ids" / "test.csv").is_file()
+
+
+def test_the_test_columns_pass_through_as_written_and_an_old_answer_is_dropped(tmp_path, table_files, untrained_weights):
+    """An empty colour cell (read as the median for the colour model) and a raw intensity stay
+    as written; labelling an earlier output again writes no stale cand_4 beside the new top 3."""
+    test, template = table_files
+    df = pd.read_csv(test)
+    df["R"] = df["R"].astype(object)
+    df.loc[0, "R"], df.loc[1, "R"] = "", "1234567.89"
+    df["cell"] = [f"c{i}" for i in range(len(df))]
+    given = tmp_path / "given.csv"
+    df.to_csv(given, index=False)
+    first, second = tmp_path / "first.csv", tmp_path / "second.csv"
+    assert run("label", given, "--template", template, "--weights", untrained_weights, "--top-k", "5", "--out", first) == 0
+    assert run("label", first, "--template", template, "--weights", untrained_weights, "--out", second) == 0
+    out = pd.read_csv(second, dtype=str, keep_default_na=False)
+    assert out.loc[0, "R"] == "" and out.loc[1, "R"] == "1234567.89" and list(out["cell"]) == list(df["cell"])
+    assert "cand_4" not in out.columns and "prob_5" not in out.columns
+    assert list(out.columns).count("auto_id") == 1
+
+
+def test_a_test_without_colour_is_said_to_be_named_by_position(tmp_path, table_files, untrained_weights, worm, capsys):
+    _, template = table_files
+    plain = tmp_path / "plain.csv"
+    write_table(NeuronTable(worm.xyz, source="plain.csv"), plain)
+    assert run("label", plain, "--template", template, "--weights", untrained_weights, "--out", tmp_path / "o.csv") == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "plain.csv: no colour column" in err[0] and "position only" in err[0], err
+    assert run("label", plain, "--template", template, "--weights", untrained_weights, "--no-color", "--out", tmp_path / "p.csv") == 0
+    assert capsys.readouterr().err == ""
 
 
 def test_simulate_writes_known_correspondence(tmp_path, table_files):

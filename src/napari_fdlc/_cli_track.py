@@ -1,4 +1,4 @@
-"""give every neuron of a sequence of volumes its track ID (and name) over time (``fdlc track``).
+"""give every neuron of a sequence of volumes its track ID (and name) over time.
 
 Input: one neuron table with a ``t`` column (time point), a folder of neuron tables (one volume
 each, natural name order), or several tables (in the order given). Track IDs are the row indices
@@ -40,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", help="model weights (path without suffix); default: the shipped model")
     parser.add_argument("--follow-with", choices=("tracking", "full"), default="tracking",
                         help="model for the volumes placed from the one before: tracking (default; the small model "
-                        "trained for it, about twice as fast) or full (the identification model)")
+                        "trained for it, 2-3 times as fast, speed.md) or full (the identification model)")
     parser.add_argument("--tracking-weights", help="tracking model weights (path without suffix); default: the shipped one")
     parser.add_argument("--chirality", choices=CHIRALITIES, default="auto",
                         help="handedness of the volumes relative to the reference(s), as for fdlc label")

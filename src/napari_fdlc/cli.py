@@ -251,6 +251,10 @@ def main(argv: list[str] | None = None) -> int:
     except FdlcError as exc:
         print(f"fdlc: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a file the system would not read or write (inputs are checked before)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"fdlc: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("fdlc: interrupted", file=sys.stderr)
         return 130

@@ -72,6 +72,13 @@ ADAPT_MIN_WORMS = 3
 # its first, 0.87-3.2 µm between any two worms of a corpus lab (20 pairs per lab). The position
 # likelihood is then WARP_RESIDUAL_SCALE times as wide as that residual, within WARP_WIDTH_UM
 # (on fold models' pairs, 2.5 against 1-2 and fixed widths of 2-8 µm).
+# A test of fewer than FEW_NEURONS neurons: beside a template the atlas's answer is left out. Its
+# registration fits any handful of points, so its posterior is sharp whatever the truth (session
+# 15, the shipped model, 3 pairs per corpus lab, random subsets of a worm's named neurons: 1-3
+# neurons 0-7 % right at a mean confidence of 0.71-0.78 with it, 0.18-0.30 without it; 5-8
+# neurons 13-18 % at 0.66-0.68 with it, 9-12 % at 0.28-0.34 without; 12 neurons 24 % either way).
+# ``fdlc label`` says that names from so few neurons are guesses.
+FEW_NEURONS = 10
 WARP_MIN_PROB = 0.3
 WARP_SAME_WORM_UM = 0.7
 WARP_RESIDUAL_SCALE = 2.5
@@ -559,10 +566,11 @@ class Identifier:
         ``atlas_worm_weight``), times the atlas's own posterior at the test's placement there
         (:func:`napari_fdlc.register.posterior`, in the template's names, see :func:`_in_names`)
         raised to ``atlas_weight``; unchanged (joined False) without an atlas, at weights 0, or
-        when the template cannot place the atlas (:meth:`_atlas_placement`)."""
+        when the template cannot place the atlas (:meth:`_atlas_placement`) or the test has fewer than
+        FEW_NEURONS neurons."""
         weight = self.settings.atlas_weight if use_colour else self.settings.atlas_weight_position
         worm_weight = self.settings.atlas_worm_weight if use_colour else self.settings.atlas_worm_weight_position
-        if atlas is None or (weight <= 0 and worm_weight <= 0):
+        if atlas is None or (weight <= 0 and worm_weight <= 0) or len(test) < FEW_NEURONS:
             return probs, assign_probs, False
         placement = self._atlas_placement(test, template, mirrored_to_template, atlas, use_colour)
         if placement is None:
@@ -746,11 +754,17 @@ class Identifier:
             raise FdlcError("no template given")
         if not any(t.names for t in templates):
             raise FdlcError("no template has a named neuron: a template needs names to give them")
-        if use_colour and not any(colour_model.shared_channels(t, test) for t in templates):
-            if any(c in test.colours for c in colour_model.IDENTITY_CHANNELS):
-                warn("no colour channel in common with the template(s): identifying by position only")
-            use_colour = False
-        return use_colour
+        return use_colour and any(colour_model.shared_channels(t, test) for t in templates)
+
+
+def colour_note(test: NeuronTable, references: list[NeuronTable], use_colour: bool = True) -> str | None:
+    """The line to say when colour was asked for but ``test`` shares no colour channel with the
+    ``references`` (templates, or the panel's), so it is named by position only; else None."""
+    if not use_colour or any(colour_model.shared_channels(t, test) for t in references):
+        return None
+    if any(c in test.colours for c in colour_model.IDENTITY_CHANNELS):
+        return f"{test.source}: no colour channel in common with the template(s): identifying by position only"
+    return f"{test.source}: no colour column (R, G, B): identifying by position only (--no-color says it is meant)"
 
 
 def can_adapt_colours(tests: list[NeuronTable], use_colour: bool = True) -> bool:

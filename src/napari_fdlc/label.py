@@ -7,36 +7,46 @@ prob_K`` (K = max(top_k, 3)), then the test's other columns (its ``label`` is no
 
 from __future__ import annotations
 
+import os
+import re
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from .errors import FdlcError, warn
-from .identify import ADAPT_MIN_TESTS, Identifier, can_adapt_colours, default_identifier, harmonise, label_neurons
+from .identify import (ADAPT_MIN_TESTS, FEW_NEURONS, Identifier, can_adapt_colours, colour_note, default_identifier,
+                       harmonise, label_neurons)
 from .match import Labelling, make_labelling, name_probabilities
 from .table import COORDS, NeuronTable, implausible_scale, read_table, write_table
+
+
+# Columns of an earlier ``fdlc label`` output: labelling that output again must not carry its
+# old answer (e.g. a stale cand_4 after --top-k 3) beside the new one.
+_OUTPUT_COLUMNS = re.compile(r"neuron_index|auto_id|auto_conf|(cand|prob)_\d+")
 
 
 def labelling_frame(test: NeuronTable, result: Labelling, top_k: int = 3) -> pd.DataFrame:
     k = max(top_k, 3)
     cand, cand_p = result.candidates(k)
-    df = pd.DataFrame({"neuron_index": np.arange(len(test))})
-    for i, c in enumerate(COORDS):
-        df[c] = test.xyz[:, i]
-    df["auto_id"] = result.auto_id
-    df["auto_conf"] = np.round(result.auto_conf, 6)
+    columns = {"neuron_index": np.arange(len(test))}
+    columns.update({c: test.xyz[:, i] for i, c in enumerate(COORDS)})
+    columns["auto_id"] = result.auto_id
+    columns["auto_conf"] = np.round(result.auto_conf, 6)
     for r in range(k):
-        df[f"cand_{r + 1}"] = [row[r] for row in cand]
-        df[f"prob_{r + 1}"] = np.round(cand_p[:, r], 6)
-    rest = test.to_dataframe().drop(columns=list(COORDS) + ["label"])
-    for c in rest.columns:
-        if c not in df.columns:
-            df[c] = rest[c].to_numpy()
-    return df
+        columns[f"cand_{r + 1}"] = [row[r] for row in cand]
+        columns[f"prob_{r + 1}"] = np.round(cand_p[:, r], 6)
+    # The test's other columns as they were written (text read from a file), not as parsed.
+    given = test.text if test.text is not None else test.to_dataframe()
+    for c in given.columns:
+        if c not in columns and c not in COORDS and c != "label" and not _OUTPUT_COLUMNS.fullmatch(c):
+            columns[c] = given[c].to_numpy()
+    return pd.DataFrame(columns)
 
 
-def _output_paths(tests: list[str], out: str) -> list[Path]:
+def _output_paths(tests: list[str], out: str, inputs: list[str]) -> list[Path]:
+    """Where each test's answer goes, refused before any work when it cannot be written there
+    or would replace one of the ``inputs``."""
     stems = [Path(t).stem for t in tests]
     seen = set()
     for stem in stems:
@@ -44,13 +54,23 @@ def _output_paths(tests: list[str], out: str) -> list[Path]:
             raise FdlcError(f"two test tables share the file stem '{stem}': their outputs would collide in {out}")
         seen.add(stem)
     out_path = Path(out)
-    if len(tests) == 1 and not out_path.is_dir():
-        if out_path.parent and not out_path.parent.exists():
-            raise FdlcError(f"{out}: the folder {out_path.parent} does not exist")
-        return [out_path]
-    if out_path.exists() and not out_path.is_dir():
+    as_folder = len(tests) > 1 or out_path.is_dir() or out.endswith(("/", os.sep))
+    if as_folder and out_path.exists() and not out_path.is_dir():
         raise FdlcError(f"{out}: with several test tables --out must be a directory")
-    return [out_path / f"{stem}.csv" for stem in stems]
+    paths = [out_path / f"{stem}.csv" for stem in stems] if as_folder else [out_path]
+    folder = out_path if as_folder else out_path.parent
+    existing = next(p for p in (folder, *folder.parents) if p.exists() or p == Path(p.anchor or "."))
+    if not existing.is_dir():
+        raise FdlcError(f"{out}: {existing} is a file, not a folder")
+    if not as_folder and existing != folder:
+        raise FdlcError(f"{out}: the folder {folder} does not exist")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise FdlcError(f"{out}: cannot write in {existing} (permission denied)")
+    read = {Path(p).resolve() for p in inputs}
+    for path in paths:
+        if path.resolve() in read:
+            raise FdlcError(f"{path}: --out would replace an input table; choose another output")
+    return paths
 
 
 def label_files(
@@ -83,7 +103,7 @@ def label_files(
     if method == "cpd" and not templates:
         raise FdlcError("--method cpd needs --template (the reference panel is for the fdlc model)")
     # Validate everything before any work or any write.
-    test_tables = [read_table(t) for t in tests]
+    test_tables = [read_table(t, names=False) for t in tests]  # a test's names are not used
     template_tables = [read_table(t) for t in (templates or [])]
     for t in template_tables:
         if not t.named.any():
@@ -94,7 +114,12 @@ def label_files(
         reason = implausible_scale(t)
         if reason:
             warn(reason)
-    paths = _output_paths(tests, out)
+    for t in test_tables:
+        if len(t) < FEW_NEURONS:
+            warn(f"{t.source}: only {len(t)} neuron(s): names from so few positions are guesses, confidences too")
+    if method == "cpd" and (chirality != "auto" or not use_atlas):
+        warn("--chirality and --no-atlas are for the fdlc method (cpd tries both handednesses): ignored here")
+    paths = _output_paths(tests, out, [*tests, *(templates or [])])
     applies = not template_tables and chirality == "auto"
     if shared_handedness and not applies:
         warn("--shared-handedness is for the built-in panel with --chirality auto: ignored here")
@@ -106,6 +131,11 @@ def label_files(
     if method == "fdlc":
         from .reference import load_panel
 
+        references = template_tables or load_panel().templates
+        for t in test_tables:
+            note = colour_note(t, references, use_colour)
+            if note:
+                warn(note)
         identifier = (Identifier.load(weights) if weights else default_identifier()).with_chirality(chirality)
         if template_tables or not (shared_handedness or adapt_colours):
             results = [label_neurons(t, template_tables or None, use_colour, identifier=identifier, use_atlas=use_atlas)
@@ -120,8 +150,6 @@ def label_files(
                      "(--chirality decides yourself; --no-shared-handedness lets each recording decide alone)")
     else:
         results = [cpd_labelling(t, template_tables, use_colour) for t in test_tables]
-    if len(paths) > 1:
-        paths[0].parent.mkdir(parents=True, exist_ok=True)
     for test, result, path in zip(test_tables, results, paths):
         write_table(labelling_frame(test, result, top_k), path)
     return paths

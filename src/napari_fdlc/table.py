@@ -43,7 +43,9 @@ class NeuronTable:
 
     ``labels`` holds names without the ``?`` ('' = unnamed) and ``label_conf`` the annotator's
     confidence (1 named, 0.5 unsure, 0 unnamed). ``extra`` keeps every other input column, in
-    input order, so that a table read and written back loses nothing.
+    input order, so that a table read and written back loses nothing. ``text`` (tables read from
+    a file) is every input column as the text read: an empty colour cell is read as the
+    volume's median, but ``fdlc label`` passes the test's columns through as they were written.
     """
 
     xyz: np.ndarray
@@ -52,6 +54,7 @@ class NeuronTable:
     label_conf: np.ndarray | None = None
     extra: pd.DataFrame | None = None
     source: str = "<memory>"
+    text: pd.DataFrame | None = None
 
     def __post_init__(self) -> None:
         self.xyz = np.asarray(self.xyz, dtype=np.float64).reshape(-1, 3)
@@ -92,6 +95,7 @@ class NeuronTable:
             label_conf=self.label_conf[index],
             extra=self.extra.iloc[index].reset_index(drop=True),
             source=self.source,
+            text=None if self.text is None else self.text.iloc[index].reset_index(drop=True),
         )
 
     def label_strings(self) -> list[str]:
@@ -150,8 +154,9 @@ def _is_neuropal_id(lines: list[str]) -> bool:
     return any(line.startswith("User ID,") and "Real X (um)" in line for line in lines[:12])
 
 
-def read_table(path: str | os.PathLike) -> NeuronTable:
-    """Read and validate a neuron table (ours or a NeuroPAL_ID export)."""
+def read_table(path: str | os.PathLike, names: bool = True) -> NeuronTable:
+    """Read and validate a neuron table (ours or a NeuroPAL_ID export). ``names=False`` leaves
+    its ``label`` column unread (a table to be named: its names are not used)."""
     path = Path(path)
     name = str(path)
     if not path.exists():
@@ -170,9 +175,9 @@ def read_table(path: str | os.PathLike) -> NeuronTable:
     if _is_neuropal_id(lines):
         header_line = next(i for i, line in enumerate(lines) if line.startswith("User ID,"))
         df = _read_csv(text, name, skiprows=header_line)
-        return _from_neuropal_id(df, name, first_line=header_line + 2)
+        return _from_neuropal_id(df, name, first_line=header_line + 2, names=names)
     df = _read_csv(text, name)
-    return table_from_dataframe(df, source=name, first_line=2)
+    return table_from_dataframe(df, source=name, first_line=2, names=names)
 
 
 def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
@@ -199,7 +204,7 @@ def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, a
     return values
 
 
-def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line: int = 2) -> NeuronTable:
+def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line: int = 2, names: bool = True) -> NeuronTable:
     """Validate a data frame in our column layout and turn it into a :class:`NeuronTable`."""
     df = df.copy()
     df.columns = [str(c).strip() for c in df.columns]
@@ -223,13 +228,13 @@ def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line:
             colours[c] = values
     labels = np.full(len(df), "", dtype=object)
     conf = np.zeros(len(df))
-    if "label" in df.columns:
+    if names and "label" in df.columns:
         parsed = [parse_name(v) for v in df["label"]]
         labels = np.array([p[0] for p in parsed], dtype=object)
         conf = np.array([p[1] for p in parsed])
         labels, conf = _drop_duplicate_names(labels, conf, source)
     kept = [c for c in df.columns if c not in COORDS + COLOUR_CHANNELS + ("label",)]
-    return NeuronTable(xyz, colours, labels, conf, df[kept].reset_index(drop=True), source)
+    return NeuronTable(xyz, colours, labels, conf, df[kept].reset_index(drop=True), source, text=df.reset_index(drop=True))
 
 
 def _drop_duplicate_names(labels: np.ndarray, conf: np.ndarray, source: str):
@@ -246,7 +251,7 @@ def _drop_duplicate_names(labels: np.ndarray, conf: np.ndarray, source: str):
     return labels, conf
 
 
-def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int) -> NeuronTable:
+def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int, names: bool = True) -> NeuronTable:
     ours = df.rename(columns={k: v for k, v in _NPID_TO_OURS.items() if k in df.columns})
     if "User ID" in ours.columns:
         ids = ours["User ID"].astype(str).str.strip()
@@ -258,7 +263,7 @@ def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int) -> NeuronTab
         ours["label"] = ids
         ours = ours.drop(columns=["User ID"])
     ours = ours.loc[:, [c for c in ours.columns if c and not c.startswith("Unnamed:")]]
-    return table_from_dataframe(ours, source=name, first_line=first_line)
+    return table_from_dataframe(ours, source=name, first_line=first_line, names=names)
 
 
 def write_table(table: NeuronTable | pd.DataFrame, path: str | os.PathLike) -> None:
