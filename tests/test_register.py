@@ -197,3 +197,47 @@ def test_mixture_densities_match_their_definition():
     total, resp = _log_likelihood(comp, responsibilities=True)
     assert np.allclose(total, expected)
     assert np.allclose(resp, np.exp(direct - expected[..., None]))
+
+
+def _with_body(head, extra: int, length_um: float, rng):
+    """``head`` and ``extra`` unnamed neurons over ``length_um`` behind it, along its body axis."""
+    from napari_fdlc.geometry import canonical_frame
+    from napari_fdlc.table import NeuronTable
+
+    canon, centre, rotation = canonical_frame(head.xyz)
+    nose = np.array([str(n).startswith(("IL1", "IL2", "OLQ", "CEP")) for n in head.labels])
+    back = -np.sign(canon[nose, 0].mean())
+    end = canon[:, 0].max() if back > 0 else canon[:, 0].min()
+    body = np.column_stack([end + back * rng.uniform(5, length_um, extra), rng.normal(0, 3, extra), rng.normal(0, 3, extra)])
+    donor = rng.integers(len(head), size=extra)
+    return NeuronTable(np.vstack([head.xyz, body @ rotation + centre]),
+                       {c: np.concatenate([v, v[donor]]) for c, v in head.colours.items()},
+                       np.concatenate([head.labels, np.full(extra, "", dtype=object)]))
+
+
+def test_a_view_into_the_body_is_cut_to_its_head():
+    """A head with much of the body behind it is cut to the window the atlas explains best;
+    a head alone is left whole."""
+    from napari_fdlc.reference import generate_worm
+    from napari_fdlc.register import head_window
+
+    atlas = load_atlas()
+    head = generate_worm(seed=3)
+    assert head_window(head, atlas.mixture()) is None
+    assert head_window(head, template_mixture(head)) is None  # a template is never cut
+    for extra, length in ((40, 60), (120, 250)):
+        wider = _with_body(head, extra, length, np.random.default_rng(extra))
+        rows = head_window(wider, atlas.mixture())
+        assert rows is not None and np.isin(np.arange(len(head)), rows).mean() > 0.9
+    # the window is longer than a head: 60 µm of body fit in it, 250 do not
+    assert np.isin(np.arange(len(head), len(wider)), rows).mean() < 0.5
+
+
+def test_no_corpus_head_is_cut(corpus_path):
+    """The corpus's heads are 0.6-1.4 times the atlas's length: none reaches WIDER_VIEW, so
+    the head window changes no corpus figure."""
+    from napari_fdlc.corpus import load_corpus
+    from napari_fdlc.register import head_window
+
+    mixture = load_atlas().mixture()
+    assert all(head_window(w.table, mixture) is None for w in load_corpus(corpus_path))

@@ -32,7 +32,7 @@ from .errors import FdlcError, ModelError, warn
 from .geometry import (CHIRALITIES, apply_affine, canonical_frame, compose_affine, fit_affine, fit_warp,
                        mirrored_by_names, position_evidence)
 from .match import Labelling, assign_log, make_labelling, name_probabilities
-from .register import Placement, posterior, register, template_mixture
+from .register import Placement, head_window, posterior, register, template_mixture
 from .table import NeuronTable
 
 if TYPE_CHECKING:
@@ -640,8 +640,18 @@ class Identifier:
         when there are any, else the one the model is most willing to match, minus the fixed
         prior against a mirrored placement (``mirror_penalty``). The choice is made on the first
         ``PANEL_HANDEDNESS_TEMPLATES`` templates (their willingness scaled to the whole panel, so
-        that the prior keeps its weight); the other templates run in the chosen chirality only."""
+        that the prior keeps its weight); the other templates run in the chosen chirality only.
+        A test that shows much of the body beyond the head is named in its head only
+        (:func:`napari_fdlc.register.head_window`); the rest get no name."""
         use_colour = self._check(test, panel.templates, use_colour)
+        window = head_window(test, panel.atlas.mixture(), use_colour)
+        if window is None:
+            return self._label_panel(test, panel, use_colour, fixed)
+        part_fixed = {k: fixed[row] for k, row in enumerate(window.tolist()) if row in (fixed or {})}
+        return _widened(self._label_panel(test.subset(window), panel, use_colour, part_fixed or None), window, len(test), fixed)
+
+    def _label_panel(self, test: NeuronTable, panel: Panel, use_colour: bool, fixed: dict[int, str] | None) -> Labelling:
+        """:meth:`label_panel` for a test of a head's extent, colour checked."""
         placements = panel.atlas.register(test, use_colour, self._chiralities())
         templates = panel.templates
         tc_sc = [self._model_colours(t, [test], use_colour) for t in templates]
@@ -804,6 +814,20 @@ def decide_handedness(willingness, registration=None) -> tuple[str | None, int, 
         if n and binomtest(k, n, 0.5, alternative=side).pvalue < BATCH_HANDEDNESS_P:
             return decided, k, n
     return None, k, n
+
+
+def _widened(part: Labelling, rows: np.ndarray, n: int, fixed: dict[int, str] | None) -> Labelling:
+    """``part``, the answer for ``rows`` of a test of ``n`` neurons, as the answer for the whole
+    test: the other neurons get no name (certainly no named match), or the name the user fixed."""
+    probs = np.zeros((n, len(part.names)))
+    probs[rows] = part.probs
+    auto_id, auto_conf = [""] * n, np.ones(n)
+    for k, row in enumerate(rows):
+        auto_id[row], auto_conf[row] = part.auto_id[k], part.auto_conf[k]
+    for row, name in (fixed or {}).items():
+        if row not in set(rows.tolist()):
+            auto_id[row], auto_conf[row] = name, 0.0
+    return Labelling(part.names, probs, auto_id, auto_conf, {**part.info, "head_window": len(rows)})
 
 
 def _add_evidence(log_p: np.ndarray, evidence: np.ndarray | None) -> np.ndarray:
