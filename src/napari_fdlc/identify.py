@@ -824,8 +824,9 @@ def _widened(part: Labelling, rows: np.ndarray, n: int, fixed: dict[int, str] | 
     auto_id, auto_conf = [""] * n, np.ones(n)
     for k, row in enumerate(rows):
         auto_id[row], auto_conf[row] = part.auto_id[k], part.auto_conf[k]
+    inside = set(rows.tolist())
     for row, name in (fixed or {}).items():
-        if row not in set(rows.tolist()):
+        if row not in inside:
             auto_id[row], auto_conf[row] = name, 0.0
     return Labelling(part.names, probs, auto_id, auto_conf, {**part.info, "head_window": len(rows)})
 
