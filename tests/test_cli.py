@@ -352,3 +352,15 @@ def test_a_table_not_in_micrometres_gets_a_warning(tmp_path, table_files, untrai
     assert len(err) == 1 and "nm.csv: the neurons span" in err[0] and "must be micrometres" in err[0]
     assert run("label", test, "--template", template, "--weights", untrained_weights, "--out", tmp_path / "p.csv") == 0
     assert capsys.readouterr().err == ""
+
+
+def test_a_view_into_the_body_says_how_many_neurons_get_no_name(tmp_path, worm, capsys):
+    from test_register import _with_body
+
+    wider = tmp_path / "wider.csv"
+    write_table(_with_body(worm, 120, 250, np.random.default_rng(0)), wider)
+    assert run("label", wider, "--chirality", "same", "--out", tmp_path / "o.csv") == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "wider.csv" in err[0] and "beyond the head" in err[0], err
+    out = pd.read_csv(tmp_path / "o.csv", keep_default_na=False)
+    assert (out["auto_id"].iloc[len(worm):] == "").mean() > 0.5

@@ -233,11 +233,13 @@ def test_a_view_into_the_body_is_cut_to_its_head():
     assert np.isin(np.arange(len(head), len(wider)), rows).mean() < 0.5
 
 
-def test_no_corpus_head_is_cut(corpus_path):
-    """The corpus's heads are 0.6-1.4 times the atlas's length: none reaches WIDER_VIEW, so
-    the head window changes no corpus figure."""
+def test_corpus_heads_lose_at_most_a_few_neurons_to_the_window(corpus_path):
+    """The corpus's heads fit in the window, except NP's, which reach into the ventral cord:
+    they lose a few of those neurons (2-5 of ~190) and nothing else changes."""
     from napari_fdlc.corpus import load_corpus
     from napari_fdlc.register import head_window
 
     mixture = load_atlas().mixture()
-    assert all(head_window(w.table, mixture) is None for w in load_corpus(corpus_path))
+    for worm in load_corpus(corpus_path):
+        rows = head_window(worm.table, mixture)
+        assert rows is None or (worm.lab == "NP" and len(rows) >= 0.95 * len(worm.table)), worm.source

@@ -151,6 +151,10 @@ def label_files(
     else:
         results = [cpd_labelling(t, template_tables, use_colour) for t in test_tables]
     for test, result, path in zip(test_tables, results, paths):
+        kept = result.info.get("head_window")
+        if kept is not None:
+            warn(f"{test.source}: {len(test) - kept} neuron(s) lie beyond the head (the view reaches into the body): "
+                 "they get no name")
         write_table(labelling_frame(test, result, top_k), path)
     return paths
 
