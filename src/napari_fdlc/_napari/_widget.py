@@ -697,7 +697,8 @@ class AutoLabelWidget(QWidget):
                     # decisions made while the job ran are kept too
                     carried = {**carried, **carry_decisions(self.session, table.xyz)}
                 self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name)
-            self._status(f"done: {len(table)} neurons")
+            beyond = len(table) - labelling.info.get("head_window", len(table))
+            self._status(f"done: {len(table)} neurons" + (f"; {beyond} beyond the head get no name" if beyond else ""))
 
         self._stack = stack if stack is not None else self._stack
         return self._start(work, done, wait, "auto-label")
