@@ -205,3 +205,14 @@ def test_worker_processes_make_the_same_batches_for_the_same_seed():
         for x, y in zip(batch_one, batch_two):
             assert torch.equal(x, y)
     assert not torch.equal(one[0][1], one[1][1])  # a stream, not one batch repeated
+
+
+def test_memoised_calls_keyed_by_id_never_answer_for_a_freed_object():
+    """Calibration caches registrations by the test's id; the head window passes a new table on
+    every call, and a freed table's id is reused by the next one. The cache must not answer the
+    next table with the freed one's registration."""
+    from napari_fdlc.train import memoised
+
+    rows = memoised(lambda table: len(table), lambda table: (id(table),), {})
+    sizes = (3, 5, 7, 3, 5, 7)
+    assert [rows([0] * n) for n in sizes] == list(sizes)  # each list freed before the next

@@ -613,6 +613,19 @@ def _panel_tests(corpus: list[Worm], val_pairs: dict[str, list], train_labs) -> 
     return out
 
 
+def memoised(method, key, cache: dict):
+    """``method`` answering each call once per ``key(*args, **kwargs)`` in ``cache``. The
+    arguments are kept with the answer: keys may hold ids, and an id is reused once its object
+    is gone (the panel registers each test's head window, a new table on every call, which then
+    got another window's registration)."""
+    def call(*args, **kwargs):
+        k = (id(method), *key(*args, **kwargs))
+        if k not in cache:
+            cache[k] = (args, kwargs, method(*args, **kwargs))
+        return cache[k][-1]
+    return call
+
+
 def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: dict | None = None) -> dict:
     """Fit the inference settings that are not learned by gradient descent, on validation
     pairs of the *training* labs: the weight of leaving a neuron unnamed (top-1, position
@@ -627,12 +640,7 @@ def calibrate(identifier, val_pairs: dict[str, list], log=print, panel_tests: di
     cache = {}
 
     def cached(method, key):
-        def call(*args, **kwargs):
-            k = (id(method), *key(*args, **kwargs))
-            if k not in cache:
-                cache[k] = method(*args, **kwargs)
-            return cache[k]
-        return call
+        return memoised(method, key, cache)
 
     patched = [(identifier, "_forward_grid", lambda templates, tests, tc=None, sc=None: (
                    tuple(t.tobytes() for t in templates), tuple(t.tobytes() for t in tests), tc is not None)),
