@@ -4,6 +4,10 @@
     python benchmarks/leave_one_lab_out.py --stage2 25             # then stage 2 of every fold, then score
     python benchmarks/leave_one_lab_out.py                         # score folds already trained
     python benchmarks/leave_one_lab_out.py --recalibrate           # refit their inference settings first
+    python benchmarks/leave_one_lab_out.py --no-evaluate --fold-prefix regfold   # only collect the reports
+
+Folds can be made one lab at a time (``--labs NP``), two in parallel on two cores: each trains on
+one thread for the minutes given.
 
 Stage 1 of each fold is ``fdlc train --train-labs <the other four> --colour-input --minutes M
 --threads 1 --steps 5000 --eval-every 1000 --val-pairs-per-lab 6 --out runs/fold_<LAB>/model``.
@@ -105,11 +109,12 @@ def main(argv=None) -> int:
         ece.append(f"| {lab} | " + " | ".join(f"{report[k][2]:.3f}" if k in report else "–" for k in keys) + " |")
     text = "\n".join(lines) + "\n\nExpected calibration error of `auto_conf` (calibration fitted on the four training labs only):\n\n" + "\n".join(ece) + "\n"
     with atomic_write(args.out, "w", encoding="utf-8") as handle:
-        handle.write("# Leave-one-lab-out\n\nMade by `python benchmarks/leave_one_lab_out.py"
-                     + (f" --train --minutes {args.minutes:g}" if args.train else "")
-                     + (f" --stage2 {args.stage2:g}" if args.stage2 else "")
-                     + (f" --fold-prefix {args.fold_prefix}" if args.fold_prefix else "")
-                     + (" --recalibrate" if args.recalibrate else "") + "` (see its docstring for the"
+        shown = list(sys.argv[1:] if argv is None else argv)
+        if "--out" in shown:  # where the page went is not how it was made
+            i = shown.index("--out")
+            del shown[i:i + 2]
+        handle.write("# Leave-one-lab-out\n\nMade by `" + " ".join(["python benchmarks/leave_one_lab_out.py", *shown])
+                     + "` (see its docstring for the"
                      " exact commands; how to read it: benchmarks.md). Top-1 / top-3 %, each lab scored with the"
                      " fold model that never saw it: trained on the other four labs, checkpoint and inference"
                      " settings chosen on those four only, the atlas (beside a template, and the panel's) rebuilt without the lab"
