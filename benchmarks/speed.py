@@ -53,10 +53,6 @@ import tracemalloc
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-# numpy's OpenBLAS threads fight torch's for the same cores: a 150×150 solve then takes 100+ ms
-# instead of 0.3 ms, which would slow CPD (numpy throughout) far more than fdlc. One BLAS thread
-# for numpy keeps the comparison fair; torch's threads are set by --threads.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
@@ -220,7 +216,7 @@ def main(argv=None) -> int:
     cpd_ms, cpd_track_ms = rows[cpd_name]["cpu_ms"], rows[cpd_track_name]["cpu_ms"]
     load = os.getloadavg()
     print(f"# speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__}, "
-          f"{args.threads} torch thread(s), OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}; weights {weights or 'shipped'}")
+          f"{args.threads} torch thread(s), numpy's BLAS on one thread within each call (napari_fdlc/_blas.py); weights {weights or 'shipped'}")
     print(f"test volume: {len(test)} neurons; template {len(template)} neurons; panel {len(panel.templates)} templates; "
           f"batched over {args.batch} volumes (panel: 16); tracking: a recording of {len(sequence)} volumes; "
           f"load average before the run {load[0]:.1f}")

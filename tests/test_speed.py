@@ -127,3 +127,34 @@ def test_identifier_traces_each_pattern_of_masks_once(model, worm, other_worm):
         ident._model_pass(a[None], b[None], None, mask, None, None)
     assert list(ident._traced) == [(1, 1, False, False, False, False), (1, 1, False, True, False, False)]
     assert ident.with_settings(temperature=2.0)._traced is ident._traced
+
+
+def test_numpy_blas_is_held_to_one_thread_inside_calls_and_restored_after(model, worm, other_worm):
+    # On two cores numpy's BLAS threads and torch's took turns on the cores: 3x slower (_blas.py).
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from napari_fdlc import identify
+    from napari_fdlc.identify import Identifier
+
+    def blas_threads():
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    seen = []
+    inner = identify.register
+
+    def spy(*args, **kwargs):  # the registration's EM is where numpy's BLAS works
+        seen.append(blas_threads())
+        return inner(*args, **kwargs)
+
+    with threadpool_limits(2, user_api="blas"):
+        before = blas_threads()
+        ident = Identifier(model)
+        try:
+            identify.register = spy
+            ident.label(other_worm, [worm])
+        finally:
+            identify.register = inner
+        after = blas_threads()
+    assert before and all(n == 2 for n in before), "this test needs a BLAS that can run two threads"
+    assert seen and all(n == [1] * len(before) for n in seen)
+    assert after == before

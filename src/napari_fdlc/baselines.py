@@ -17,6 +17,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
+from ._blas import one_blas_thread
 from .colour import IDENTITY_CHANNELS
 from .geometry import FLOOR_FLIPS, ORIENTATIONS, canonical_frame
 from .table import NeuronTable
@@ -57,6 +58,7 @@ def floor_match(template: NeuronTable, test: NeuronTable, use_colour: bool = Fal
     return _one_hot(len(b), len(a), best[1], best[2])
 
 
+@one_blas_thread  # as fdlc's own calls, so that the two compare on the same footing
 def cpd_match(template: NeuronTable, test: NeuronTable, use_colour: bool = False, max_iterations: int = 50) -> np.ndarray:
     """Non-rigid CPD from the template onto the test in each of the 16 orientations; the one
     with the smallest mean distance to its nearest neighbour wins. Probabilities (N_test,

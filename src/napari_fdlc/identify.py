@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import colour as colour_model
+from ._blas import one_blas_thread
 from .errors import FdlcError, ModelError, warn
 from .geometry import (CHIRALITIES, apply_affine, canonical_frame, compose_affine, fit_affine, fit_warp,
                        mirrored_by_names, position_evidence)
@@ -331,6 +332,7 @@ class Identifier:
                 r["log_p"] = lp
         return results
 
+    @one_blas_thread
     def place(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True):
         """The template in its canonical frame, and each test registered onto it
         (:func:`napari_fdlc.register.register`) from every kept start, in the chiralities the
@@ -366,6 +368,7 @@ class Identifier:
         ``fixed`` (row -> name) choose the chirality that agrees with them."""
         return self.match_many(template, [test], use_colour, fixed)[0]
 
+    @one_blas_thread
     def match_many(
         self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True, fixed: dict[int, str] | None = None,
     ) -> list[tuple[np.ndarray, dict]]:
@@ -430,6 +433,7 @@ class Identifier:
         for k, lp, placed, width in zip(refined, self._forward_many(a, warped, tc, sc), warped, widths):
             found[k].update(log_p=_add_evidence(lp, position_evidence(placed, a, width)), moved=placed, same_worm=True)
 
+    @one_blas_thread
     def search(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True, refine_steps: int | None = None):
         """The full search for many tests against one template: registration (:meth:`place`),
         every candidate pose through the model in one batch, the choice, ``refine_steps``
@@ -506,6 +510,7 @@ class Identifier:
         answers (:meth:`_join_atlas`)."""
         return self.label_many([test], templates, use_colour, atlas, fixed)[0]
 
+    @one_blas_thread
     def label_many(
         self,
         tests: list[NeuronTable],
@@ -524,78 +529,112 @@ class Identifier:
             return [self.label_many([test], templates, flag, atlas, fixed)[0] for test, flag in zip(tests, flags)]
         use_colour = flags[0]
         matches = [self.match_many(template, tests, use_colour, fixed) for template in templates]
+        infos = [[found[k][1] for found in matches] for k in range(len(tests))]  # per test, per template
+        # The template's own worm (a second look after a warp, :meth:`_warp_refine`) needs no
+        # atlas beside the handedness chosen: its answer cost held-out synthetic pairs 0.5 points.
+        # The other handedness is joined with the atlas whenever every template has one.
+        wanted = [((() if all(i["same_worm"] for i in info) else (info[0]["mirrored"],))
+                   + ((not info[0]["mirrored"],) if all("other_handedness" in i for i in info) else ()))
+                  for info in infos]
+        views = self._atlas_views(tests, templates[0], wanted, use_colour, atlas)
         out = []
-        for k, test in enumerate(tests):
-            per_template, to_assign, infos = [], [], []
-            for template, found in zip(templates, matches):
-                probs, info = found[k]
-                per_template.append((probs[:, :-1], template.labels))
-                to_assign.append((info.pop("assign_probs")[:, :-1], template.labels))
-                infos.append(info)
+        for k, (test, info, view) in enumerate(zip(tests, infos, views)):
+            per_template, to_assign = [], []
+            for template, found, i in zip(templates, matches, info):
+                per_template.append((found[k][0][:, :-1], template.labels))
+                to_assign.append((i.pop("assign_probs")[:, :-1], template.labels))
             names, probs = name_probabilities(per_template)
             assign_probs = name_probabilities(to_assign)[1]
-            # The template's own worm (a second look after a warp, :meth:`_warp_refine`) needs no
-            # second opinion: the atlas's answer cost held-out synthetic pairs 0.5 points.
-            same_worm = all(info["same_worm"] for info in infos)
-            probs, assign_probs, joined = self._join_atlas(test, templates[0], infos[0]["mirrored"], names, probs,
-                                                           assign_probs, use_colour, None if same_worm else atlas)
-            others = [info.pop("other_handedness", None) for info in infos]
+            mirrored = info[0]["mirrored"]
+            probs, assign_probs, joined = self._join_atlas(test, names, probs, assign_probs, use_colour, view.get(mirrored))
+            others = [i.pop("other_handedness", None) for i in info]
             if all(o is not None for o in others):
-                probs = self._with_doubt(test, templates, infos[0]["mirrored"], names, probs, others, use_colour, atlas)
-            info = {"templates": infos, "colour": use_colour, "atlas": joined}
-            out.append(make_labelling(names, probs, fixed, info, self.settings.no_match_weight, assign_probs=assign_probs))
+                # The probabilities reported with a template: the chosen chirality's answer
+                # mixed with the other chirality's (each template's best placement in the other
+                # handedness, joined with the atlas in that handedness), at
+                # ``template_chirality_doubt``. Positions and colours barely tell a worm from its
+                # mirror image, so a name is trusted only as much as the handedness it was given in.
+                other = name_probabilities([(o[:, :-1], t.labels) for o, t in zip(others, templates)])[1]
+                other = self._join_atlas(test, names, other, other, use_colour, view.get(not mirrored))[0]
+                doubt = self.settings.template_chirality_doubt
+                probs = (1 - doubt) * probs + doubt * other
+            out.append(make_labelling(names, probs, fixed, {"templates": info, "colour": use_colour, "atlas": joined},
+                                      self.settings.no_match_weight, assign_probs=assign_probs))
         return out
 
-    def _with_doubt(self, test: NeuronTable, templates: list[NeuronTable], mirrored: bool, names: list[str],
-                    probs: np.ndarray, others: list[np.ndarray], use_colour: bool, atlas: Atlas | None) -> np.ndarray:
-        """The probabilities reported with a template: the chosen chirality's answer mixed with
-        the other chirality's (each template's best placement in the other handedness, joined
-        with the atlas in that handedness), at ``template_chirality_doubt``. Positions
-        and colours barely tell a worm from its mirror image, so a name is trusted only as much
-        as the handedness it was given in."""
-        # The same templates' names: the same columns as ``probs``.
-        other = name_probabilities([(o[:, :-1], t.labels) for o, t in zip(others, templates)])[1]
-        other = self._join_atlas(test, templates[0], not mirrored, names, other, other, use_colour, atlas)[0]
-        doubt = self.settings.template_chirality_doubt
-        return (1 - doubt) * probs + doubt * other
-
-    def _join_atlas(self, test: NeuronTable, template: NeuronTable, mirrored_to_template: bool, names: list[str],
-                    probs: np.ndarray, assign_probs: np.ndarray, use_colour: bool, atlas: Atlas | None):
+    def _join_atlas(self, test: NeuronTable, names: list[str], probs: np.ndarray, assign_probs: np.ndarray,
+                    use_colour: bool, view: tuple | None):
         """(probs, assign_probs, joined): the templates' answer over ``names``, averaged with the
         model's answer against the atlas's mean worm (:meth:`_atlas_worm_answer`, at
         ``atlas_worm_weight``), times the atlas's own posterior at the test's placement there
         (:func:`napari_fdlc.register.posterior`, in the template's names, see :func:`_in_names`)
-        raised to ``atlas_weight``; unchanged (joined False) without an atlas, at weights 0, or
-        when the template cannot place the atlas (:meth:`_atlas_placement`) or the test has fewer than
-        FEW_NEURONS neurons."""
+        raised to ``atlas_weight``; ``view`` is the test's (atlas, placement, log p against the
+        mean worm) from :meth:`_atlas_views`; unchanged (joined False) without one."""
+        if view is None:
+            return probs, assign_probs, False
+        atlas, placement, worm_log_p = view
         weight = self.settings.atlas_weight if use_colour else self.settings.atlas_weight_position
         worm_weight = self.settings.atlas_worm_weight if use_colour else self.settings.atlas_worm_weight_position
-        if atlas is None or (weight <= 0 and worm_weight <= 0) or len(test) < FEW_NEURONS:
-            return probs, assign_probs, False
-        placement = self._atlas_placement(test, template, mirrored_to_template, atlas, use_colour)
-        if placement is None:
-            return probs, assign_probs, False
-        placed = placement.xyz
-        # A partial view (SF's ~60-neuron recordings) sits on the whole-head mean worm at one of
-        # several offsets, a weaker placement than on a template of its own lab.
-        if worm_weight > 0 and not placement.partial_view:
-            worm_probs, worm_assign = self._atlas_worm_answer(test, atlas, placed, names, probs, assign_probs, use_colour)
+        if worm_log_p is not None:
+            worm_probs, worm_assign = self._atlas_worm_answer(test, worm_log_p, names, probs, assign_probs, use_colour)
             probs = (1 - worm_weight) * probs + worm_weight * worm_probs
             assign_probs = (1 - worm_weight) * assign_probs + worm_weight * worm_assign
         if weight > 0:
-            resp, none = posterior(test, atlas.mixture(), placed, use_colour)
+            resp, none = posterior(test, atlas.mixture(), placement.xyz, use_colour)
             prior = _in_names(resp, none, atlas.names, names)
             # Names on the product itself; the probabilities reported temper the atlas's part
             # like the model's (the temperature divides the whole log-answer).
             probs, assign_probs = _times(probs, prior, weight / self.settings.temperature), _times(assign_probs, prior, weight)
         return probs, assign_probs, True
 
-    def _atlas_placement(self, test: NeuronTable, template: NeuronTable, mirrored_to_template: bool, atlas: Atlas,
-                         use_colour: bool) -> Placement | None:
-        """The test placed in the atlas's frame in the handedness it has there: a
+    def _atlas_views(self, tests: list[NeuronTable], template: NeuronTable, wanted: list[tuple[bool, ...]],
+                     use_colour: bool, atlas: Atlas | None) -> list[dict]:
+        """For each test, {mirrored_to_template: (atlas, placement, log p)} in each handedness
+        of ``wanted`` (relative to the template): the test placed in the atlas's frame
+        (:meth:`_atlas_placement`, both handedness in one registration) and the model's log p
+        against the atlas's mean worm there (None when ``atlas_worm_weight`` is 0 or the test is
+        a partial view: SF's ~60-neuron recordings sit on the whole-head mean worm at one of
+        several offsets, a weaker placement than on a template of its own lab). Every test's
+        passes go to the model as one batch. Empty without an atlas, at atlas weights 0, when
+        the template cannot place the atlas, or for a test of fewer than FEW_NEURONS neurons."""
+        weight = self.settings.atlas_weight if use_colour else self.settings.atlas_weight_position
+        worm_weight = self.settings.atlas_worm_weight if use_colour else self.settings.atlas_worm_weight_position
+        views: list[dict] = [{} for _ in tests]
+        if atlas is None or (weight <= 0 and worm_weight <= 0):
+            return views
+        passes = []  # (test index, handedness, placement) for the mean worm
+        for k, (test, handedness) in enumerate(zip(tests, wanted)):
+            if not handedness or len(test) < FEW_NEURONS:
+                continue
+            placements = self._atlas_placement(test, template, handedness, atlas, use_colour)
+            for mirrored, placement in zip(handedness, placements or ()):
+                views[k][mirrored] = (atlas, placement, None)
+                if worm_weight > 0 and not placement.partial_view:
+                    passes.append((k, mirrored, placement))
+        if passes:
+            from .reference import atlas_worm
+
+            if self._mean_worm[0] is not atlas:
+                self._mean_worm = (atlas, atlas_worm(atlas))
+            worm = self._mean_worm[1]
+            # One batch for the tests that give the model colour and one for those that do not.
+            for takes in (True, False):
+                group = [p for p in passes if self._takes_colour([worm, tests[p[0]]], use_colour) == takes]
+                if not group:
+                    continue
+                tc, sc = self._model_colours(worm, [tests[k] for k, _, _ in group], use_colour)
+                log_ps = self._forward_grid([worm.xyz], [p.xyz for _, _, p in group], None if tc is None else [tc], sc)[0]
+                for (k, mirrored, placement), log_p in zip(group, log_ps):
+                    views[k][mirrored] = (atlas, placement, log_p)
+        return views
+
+    def _atlas_placement(self, test: NeuronTable, template: NeuronTable, handedness: tuple[bool, ...], atlas: Atlas,
+                         use_colour: bool) -> list[Placement] | None:
+        """The test placed in the atlas's frame, once for each handedness relative to the
+        template (``handedness``: mirrored to the template or not) in one registration: a
         template is labelled, so its names give its handedness relative to the atlas, and with
-        the model's choice for the test relative to the template, the test's (None when the
-        template shares fewer than 4 names with the atlas)."""
+        the test's relative to the template, the test's (None when the template shares fewer
+        than 4 names with the atlas)."""
         # The template's handedness relative to the atlas, once per template (2 ms a time)
         cached_atlas, cached_template, _ = self._template_handedness
         if cached_atlas is not atlas or cached_template is not template:
@@ -603,26 +642,21 @@ class Identifier:
         template_mirrored = self._template_handedness[2]
         if template_mirrored is None:
             return None
-        mirrored = bool(template_mirrored) != bool(mirrored_to_template)
+        chiralities = tuple(bool(template_mirrored) != bool(m) for m in handedness)
         # Without the z stretch of the panel's registration: beside a template it took pairs
         # with colour up 0.1-2.3 points but, the settings refitted, SF's position-only pairs
         # below the non-learned floor (held out, 32.9 -> 23.2 %; docs/benchmarks.md).
-        return atlas.register(test, use_colour, chiralities=(mirrored,), stretch_z=False)[0]
+        return atlas.register(test, use_colour, chiralities=chiralities, stretch_z=False)
 
-    def _atlas_worm_answer(self, test: NeuronTable, atlas: Atlas, placed: np.ndarray, names: list[str],
-                           probs: np.ndarray, assign_probs: np.ndarray, use_colour: bool):
+    def _atlas_worm_answer(self, test: NeuronTable, log_p: np.ndarray, names: list[str], probs: np.ndarray,
+                           assign_probs: np.ndarray, use_colour: bool):
         """The model's answer (reported, and without the temperature for the assignment) for
-        the test ``placed`` in the atlas's frame against the atlas's mean worm, in the template's
-        ``names`` (N, names): a name the atlas lacks keeps the template's own probability (no
-        opinion); what the atlas gives names the template lacks is "no named match"."""
-        from .reference import atlas_worm
-
-        if self._mean_worm[0] is not atlas:
-            self._mean_worm = (atlas, atlas_worm(atlas))
+        the test placed in the atlas's frame against the atlas's mean worm (``log_p``, from
+        :meth:`_atlas_views`), in the template's ``names`` (N, names): a name the atlas lacks
+        keeps the template's own probability (no opinion); what the atlas gives names the
+        template lacks is "no named match"."""
         worm = self._mean_worm[1]
-        tc, sc = self._model_colours(worm, [test], use_colour)
-        log_p = self._forward_grid([worm.xyz], [placed], None if tc is None else [tc], sc)[0][0]
-        colour = self._colour_evidence(worm, test, tc is not None) if use_colour else None
+        colour = self._colour_evidence(worm, test, self._takes_colour([worm, test], use_colour)) if use_colour else None
         column = {n: i for i, n in enumerate(worm.labels)}
         known = np.array([n in column for n in names], dtype=bool)
         rows = [column[n] for n, k in zip(names, known) if k]
@@ -633,6 +667,7 @@ class Identifier:
             out.append(answer)
         return out
 
+    @one_blas_thread
     def label_panel(self, test: NeuronTable, panel: Panel, use_colour: bool = True, fixed: dict[int, str] | None = None) -> Labelling:
         """Names from the built-in panel. The test is placed in the atlas frame once per
         chirality (:meth:`Atlas.register`); the panel's templates share that frame, so one
@@ -711,6 +746,7 @@ class Identifier:
         return make_labelling(names, probs, fixed, info, self.settings.no_match_weight,
                               assign_probs=with_atlas(names, names_and_probs(answers, calibrated=False)[1], best))
 
+    @one_blas_thread
     def label_panel_many(self, tests: list[NeuronTable], panel: Panel, use_colour: bool = True,
                          first: list[Labelling] | None = None, share_handedness: bool = True,
                          adapt_colours: bool = False) -> list[Labelling]:

@@ -46,6 +46,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
+from ._blas import one_blas_thread
 from .errors import FdlcError, TableError
 from .geometry import Warp, canonical_frame, fit_warp, position_evidence, squared_distances
 from .match import assign, assign_log, min_cost_matching
@@ -376,6 +377,7 @@ def _has_colour(a: NeuronTable, b: NeuronTable) -> bool:
     return bool(shared_channels(a, b))
 
 
+@one_blas_thread
 def track(
     volumes: list[NeuronTable] | Sequence,
     references: list[NeuronTable] | None = None,
