@@ -158,3 +158,14 @@ def test_numpy_blas_is_held_to_one_thread_inside_calls_and_restored_after(model,
     assert before and all(n == 2 for n in before), "this test needs a BLAS that can run two threads"
     assert seen and all(n == [1] * len(before) for n in seen)
     assert after == before
+
+
+def test_warm_up_runs_the_model_and_leaves_errors_to_the_real_call(model, worm):
+    from napari_fdlc.identify import Identifier, warm_up
+    from napari_fdlc.table import NeuronTable
+
+    ident = Identifier(model, device="cpu")
+    warm_up(ident, [worm])
+    assert ident._traced  # the model ran (and its traces are made) before the first real call
+    unnamed = NeuronTable(worm.xyz, worm.colours, source="unnamed")
+    warm_up(ident, [unnamed])  # a template without names: the real call says so, not the warm-up

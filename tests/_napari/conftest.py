@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,15 @@ def pytest_collection_modifyitems(config, items):
 
 def pytest_report_header(config):
     return NO_DISPLAY
+
+
+@pytest.fixture(autouse=True)
+def _warm_up_ends_with_its_test():
+    """A widget's warm-up thread (AutoLabelWidget._warm_up) never runs on into the next test."""
+    yield
+    for thread in threading.enumerate():
+        if thread.name == "napari-fdlc warm-up":
+            thread.join()
 
 
 @pytest.fixture(autouse=True)

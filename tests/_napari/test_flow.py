@@ -239,3 +239,29 @@ def test_whole_flow(labelled_viewer, make_napari_viewer):
     widget2.clear(a)
     assert json.loads(path.read_text())["neurons"]["status"][a] == "auto"
     assert find_session(widget2.session.image) == path
+
+
+def test_the_model_warms_up_while_the_user_picks_channels(make_napari_viewer, sample_files, templates):
+    # The first Auto-label would otherwise pay torch's import, the weights' load and the model's
+    # traces (~1.5 s on two cores): the widget does that in a thread as soon as it is shown.
+    from qtpy.QtWidgets import QApplication
+
+    from napari_fdlc._napari._widget import AutoLabelWidget
+    from napari_fdlc.identify import Identifier
+    from napari_fdlc.model import CorrespondenceModel
+
+    viewer = make_napari_viewer()
+    viewer.open_sample("napari-fdlc", "neuropal")
+    widget = AutoLabelWidget(viewer)
+    identifier = Identifier(CorrespondenceModel({"layers": 1, "dim": 32}), device="cpu")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    assert widget._warming is None  # it starts once the event loop runs
+    QApplication.processEvents()
+    assert widget._warming is not None
+    widget._warming.join(timeout=60)
+    assert not widget._warming.is_alive()
+    warmed = set(identifier._traced)
+    assert warmed, "the warm-up ran no model pass"
+    assert widget.auto_label() is not None
+    assert set(identifier._traced) == warmed, "the first Auto-label traced the model again"
