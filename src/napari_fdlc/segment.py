@@ -53,6 +53,12 @@ from .table import NeuronTable
 
 Progress = Callable[[float, str], None]
 FINE_SCALE = 0.8  # second detection scale, a fraction of the nucleus diameter (see detect_nuclei)
+# split_by_colour: a colour maximum between COLOUR_NEAR and FINE_SEPARATION diameters from a
+# detection (1.35-1.8 µm at 3 µm) is a nucleus of its own only where that colour is weaker than
+# COLOUR_RATIO of its own at the detection: a neighbour of another colour, not the edge of a big
+# nucleus of the same colour (fitted on 8 rendered worms per lab, docs/segmentation.md).
+COLOUR_NEAR = 0.45
+COLOUR_RATIO = 0.7
 FINE_SEPARATION = 0.6  # diameters: a fine-scale maximum nearer a nominal detection is that nucleus
 # A colour-channel maximum counts as a nucleus when W there responds at least this fraction as
 # strongly as at the median detection (rendered corpus worms: nuclei 0.39-0.95, others <= 0.17).
@@ -113,6 +119,7 @@ def detect_nuclei(
     merge_distance_um: float | None = None,
     valley_sd: float = 0.0,
     fine_scale: float | None = FINE_SCALE,
+    band_passed: tuple | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Nucleus centres in a Z, Y, X volume.
 
@@ -126,7 +133,8 @@ def detect_nuclei(
     weaker one, and by more than ``valley_sd`` noise SDs. ``min_distance_um`` (default 0.3
     diameter): closer maxima are always merged. ``fine_scale``: also detect at this fraction of
     the diameter, at twice the threshold, and add what lies more than ``FINE_SEPARATION``
-    diameters from every detection (None: one scale only).
+    diameters from every detection (None: one scale only). ``band_passed``: the volume's
+    :func:`_band_pass` at this diameter when the caller has it already.
     """
     if diameter_um <= 0 or not np.isfinite(diameter_um):
         raise ImageError(f"nucleus diameter must be a positive number of µm (got {diameter_um})")
@@ -134,7 +142,7 @@ def detect_nuclei(
     if min_distance_um is None:
         min_distance_um = 0.3 * diameter_um
     _report(progress, 0.1, "band-pass filtering")
-    response, factors, med, noise = _band_pass(volume, vox, diameter_um, sigma_fraction)
+    response, factors, med, noise = band_passed or _band_pass(volume, vox, diameter_um, sigma_fraction)
     bvox = vox * factors
 
     _report(progress, 0.5, "finding maxima")
@@ -215,7 +223,10 @@ def split_by_colour(
     finer scale (twice the threshold, as for W's finer scale) more than ``FINE_SEPARATION``
     diameters from every detection are added if W there responds above the threshold and at
     least ``min_w`` times as strongly as at the median detection: every neuron has W, while a
-    colour maximum between nuclei (an edge, a gut granule) has little. Returns the added
+    colour maximum between nuclei (an edge, a gut granule) has little. Between ``COLOUR_NEAR``
+    and ``FINE_SEPARATION`` diameters from a detection (NP's nuclei pressed together: 1.6-2.3 µm
+    apart), a maximum is added only where its colour at that detection is below
+    ``COLOUR_RATIO`` of its own: two nuclei of different colours. Returns the added
     centres (µm, z y x) and their W response at the finer scale in noise SDs. ``w_volume``: the
     W channel already read (segment_stack's detection image), so that a stack on disk is not
     read for it again."""
@@ -233,14 +244,26 @@ def split_by_colour(
     offset = (factors - 1) / 2.0 * vox  # a binned voxel's centre, in the original frame
     w_response, w_factors, med, noise = _band_pass(_bin(stack.channel(w) if w_volume is None else w_volume, factors), bvox, fine)
     typical = np.median(_response_at(w_response, w_factors, bvox, zyx_um - offset)) - med
-    found = [detect_nuclei(_bin(stack.channel(r), factors), bvox, fine,
-                           2 * threshold, min_relative, fine_scale=None)[0] for r in colour_roles]
+    passes = [_band_pass(_bin(stack.channel(r), factors), bvox, fine) for r in colour_roles]
+    found = [detect_nuclei(None, bvox, fine, 2 * threshold, min_relative, fine_scale=None, band_passed=bp)[0]
+             for bp in passes]
+    channel_of = np.concatenate([np.full(len(f), k) for k, f in enumerate(found)])
     candidates = np.vstack(found) + offset
     w_at = _response_at(w_response, w_factors, bvox, candidates - offset) - med
     strong = np.flatnonzero((w_at >= min_w * typical) & (w_at >= threshold * noise))
+    near_ok = np.zeros(len(candidates), dtype=bool)
+    if len(strong):  # the band where the colour must tell the candidate from its neighbour
+        dist, nearest = cKDTree(zyx_um).query(candidates)
+        band = np.flatnonzero((dist > COLOUR_NEAR * diameter_um) & (dist <= FINE_SEPARATION * diameter_um))
+        for k, (resp, rf, cmed, _) in enumerate(passes):
+            mine = band[channel_of[band] == k]
+            here = _response_at(resp, rf, bvox, candidates[mine] - offset) - cmed
+            there = _response_at(resp, rf, bvox, zyx_um[nearest[mine]] - offset) - cmed
+            near_ok[mine] = there < COLOUR_RATIO * here
     kept: list[int] = []
     for i in strong[np.argsort(-w_at[strong], kind="stable")]:  # one by one: channels may find the same nucleus
-        if cKDTree(np.vstack([zyx_um, candidates[kept]])).query(candidates[i])[0] > FINE_SEPARATION * diameter_um:
+        d = cKDTree(np.vstack([zyx_um, candidates[kept]])).query(candidates[i])[0]
+        if d > FINE_SEPARATION * diameter_um or (near_ok[i] and d > COLOUR_NEAR * diameter_um):
             kept.append(i)
     return candidates[kept].reshape(-1, 3), w_at[kept] / noise
 
