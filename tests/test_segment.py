@@ -102,29 +102,16 @@ def test_a_dim_nucleus_pressed_on_a_bright_one_needs_the_fine_scale():
 
 
 @pytest.mark.parametrize("colours, expected", [((1.0, 0.0), 2), ((1.0, 1.0), 1)])
-def test_touching_nuclei_of_different_colours_are_split_by_colour(colours, expected):
-    # 2 µm nuclei 2.2 µm apart in z (PSF 0.7 µm, 1 µm planes), the upper 1.65x brighter in W:
-    # one blob in W; R-only over G-only is two blobs in the colour channels, R over R is not.
+@pytest.mark.parametrize("offset, radius", [((0.0, 0.0, 2.2), 1.0), ((1.6, 0.0, 0.0), 0.8)])
+def test_touching_nuclei_of_different_colours_are_split_by_colour(colours, expected, offset, radius):
+    # 2 µm nuclei 2.2 µm apart in z (PSF 0.7 µm, 1 µm planes), the upper 1.65x brighter in W,
+    # or 1.6 µm nuclei 1.6 µm apart in x (NP's tightest; segment.COLOUR_NEAR): one blob in W;
+    # R-only beside G-only is two blobs in the colour channels, R beside R is not.
     r, g = np.array(colours), 1.0 - np.array(colours)
-    table = NeuronTable([[10.0, 10.0, 6.0], [10.0, 10.0, 8.2]],
+    table = NeuronTable([[10.0, 10.0, 6.0], np.add([10.0, 10.0, 6.0], offset)],
                         colours={"R": r, "G": g, "B": np.zeros(2), "W": np.array([-1.0, 1.0])})
     stack, truth = render_stack(table, seed=0, align=False, shape_zyx=(16, 80, 100), gut=False, brightness_sd=0.0,
-                                nucleus_radius_sd_um=0.0, nucleus_radius_um=1.0, texture=0.0, min_spacing_um=1.0)
-    assert len(segment_stack(stack, colour_split=False)) == 1
-    found = segment_stack(stack)
-    assert len(found) == expected
-    assert score_detections(truth.xyz, found.xyz)["tp"] == expected
-
-
-@pytest.mark.parametrize("colours, expected", [((1.0, 0.0), 2), ((1.0, 1.0), 1)])
-def test_nuclei_pressed_closer_than_the_fine_scale_separates_are_split_by_colour_alone(colours, expected):
-    # 1.6 µm nuclei 1.6 µm apart (NP's tightest): a colour maximum that near a detection is
-    # a nucleus of its own only where the detection is not of its colour (segment.COLOUR_NEAR).
-    r, g = np.array(colours), 1.0 - np.array(colours)
-    table = NeuronTable([[10.0, 10.0, 6.0], [11.6, 10.0, 6.0]],
-                        colours={"R": r, "G": g, "B": np.zeros(2), "W": np.array([-1.0, 1.0])})
-    stack, truth = render_stack(table, seed=0, align=False, shape_zyx=(16, 80, 100), gut=False, brightness_sd=0.0,
-                                nucleus_radius_sd_um=0.0, nucleus_radius_um=0.8, texture=0.0, min_spacing_um=1.0)
+                                nucleus_radius_sd_um=0.0, nucleus_radius_um=radius, texture=0.0, min_spacing_um=1.0)
     assert len(segment_stack(stack, colour_split=False)) == 1
     found = segment_stack(stack)
     assert len(found) == expected
