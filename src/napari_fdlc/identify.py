@@ -967,7 +967,12 @@ def shipped_tracking_weights() -> Path:
 
 def default_tracker(device: str | None = None) -> Identifier:
     """The shipped tracking model (what ``fdlc track`` runs on volumes placed from the one
-    before; docs/model_card.md), loaded once per process and device."""
+    before; docs/model_card.md), loaded once per process and device (None: the one
+    :class:`Identifier` would choose, so that it is not loaded twice)."""
+    if device is None:
+        import torch
+
+        device = "cuda" if torch.cuda.is_available() else "cpu"
     key = ("tracker", device)
     if key not in _DEFAULT:
         _DEFAULT[key] = Identifier.load(shipped_tracking_weights(), device)

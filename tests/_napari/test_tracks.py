@@ -102,3 +102,18 @@ def test_bad_sequence_is_one_line_and_adds_nothing(track_widget, tmp_path, worm)
     assert "no 't' column" in widget.last_error and "\n" not in widget.last_error
     assert len(viewer.layers) == 0
     assert widget.run_button.isEnabled()
+
+
+def test_the_models_warm_up_while_the_user_picks_the_files(make_napari_viewer, identifier):
+    from qtpy.QtWidgets import QApplication
+
+    from napari_fdlc._napari.tracks import TrackWidget
+    from napari_fdlc.identify import default_tracker
+
+    widget = TrackWidget(make_napari_viewer())
+    widget.identifier = identifier
+    assert widget._warming is None  # it starts once the event loop runs
+    QApplication.processEvents()
+    widget._warming.join(timeout=60)
+    assert not widget._warming.is_alive()
+    assert identifier._traced and default_tracker()._traced  # both models ran before the first job

@@ -22,11 +22,12 @@ Scripting::
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from qtpy.QtCore import QEventLoop, QObject, Signal
+from qtpy.QtCore import QEventLoop, QObject, QTimer, Signal
 from qtpy.QtWidgets import (
     QCheckBox,
     QFileDialog,
@@ -112,6 +113,17 @@ class TrackWidget(QWidget):
         self._signals = _Signals()
         self._signals.progress.connect(self._on_progress)
         self._build_ui()
+        self._warming: threading.Thread | None = None
+        QTimer.singleShot(0, self._warm_up)
+
+    def _warm_up(self) -> None:
+        """Load and run both models once in a thread while the user picks the files
+        (:func:`napari_fdlc.track.warm_up`; torch's import and the weights' loads are ~1 s on
+        two cores), as the Auto-label widget does; a job joins it before tracking."""
+        if self._busy or self._warming is not None:
+            return
+        self._warming = threading.Thread(target=_warm_up, args=(self.identifier,), name="napari-fdlc warm-up")
+        self._warming.start()
 
     # ------------------------------------------------------------------------------------------
     def _build_ui(self) -> None:
@@ -185,7 +197,7 @@ class TrackWidget(QWidget):
         reference_path = self.reference_edit.text().strip()
         use_colour = self.colour_check.isChecked()
         identifier = self.identifier
-        signals = self._signals
+        signals, warming = self._signals, self._warming
 
         @thread_worker(start_thread=False, ignore_errors=True)
         def work():
@@ -196,6 +208,8 @@ class TrackWidget(QWidget):
                 raise FdlcError("choose a sequence first (a CSV with a t column, or a folder of CSVs)")
             sequence = read_sequence([sequence_path])
             references = [read_table(reference_path)] if reference_path else None
+            if warming is not None:  # one model, used by one thread at a time
+                warming.join()
             ident = identifier
             if ident is None:
                 from ..identify import default_identifier
@@ -274,3 +288,12 @@ class TrackWidget(QWidget):
     def _on_progress(self, done: int, total: int) -> None:
         self.progress_bar.setValue(int(round(100 * done / max(total, 1))))
         self.status.setText(f"tracking… {done}/{total} volumes")
+
+
+def _warm_up(identifier) -> None:
+    from ..track import warm_up
+
+    try:
+        warm_up(identifier)
+    except Exception:  # a broken install is reported by the first real job, in the GUI
+        pass
