@@ -530,12 +530,15 @@ class Identifier:
         use_colour = flags[0]
         matches = [self.match_many(template, tests, use_colour, fixed) for template in templates]
         infos = [[found[k][1] for found in matches] for k in range(len(tests))]  # per test, per template
-        # The template's own worm (a second look after a warp, :meth:`_warp_refine`) needs no
-        # atlas beside the handedness chosen: its answer cost held-out synthetic pairs 0.5 points.
-        # The other handedness is joined with the atlas whenever every template has one.
-        wanted = [((() if all(i["same_worm"] for i in info) else (info[0]["mirrored"],))
-                   + ((not info[0]["mirrored"],) if all("other_handedness" in i for i in info) else ()))
-                  for info in infos]
+        wanted = []  # per test, the handedness (relative to the template) the atlas joins in
+        for info in infos:
+            mirrored = info[0]["mirrored"]
+            # The template's own worm (a second look after a warp, :meth:`_warp_refine`) needs
+            # no atlas beside the handedness chosen: it cost held-out synthetic pairs 0.5 points.
+            chosen = () if all(i["same_worm"] for i in info) else (mirrored,)
+            # The other handedness's answer (below) is joined with the atlas in that handedness.
+            other = (not mirrored,) if all("other_handedness" in i for i in info) else ()
+            wanted.append(chosen + other)
         views = self._atlas_views(tests, templates[0], wanted, use_colour, atlas)
         out = []
         for k, (test, info, view) in enumerate(zip(tests, infos, views)):
