@@ -77,6 +77,32 @@ def user_session_dir() -> Path:
     return Path(platformdirs.user_data_dir("napari-fdlc", appauthor=False)) / "sessions"
 
 
+def preferences_path() -> Path:
+    """The Auto-label widget's choices kept between napari sessions (beside the sessions folder)."""
+    return user_session_dir().parent / "preferences.json"
+
+
+def load_preferences() -> dict:
+    """The widget's saved choices ({} when none, or when the file cannot be read: they are only
+    preferences, never worth an error)."""
+    try:
+        prefs = json.loads(preferences_path().read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return prefs if isinstance(prefs, dict) else {}
+
+
+def save_preferences(prefs: dict) -> None:
+    """Write the widget's choices (atomically); a folder that cannot be written is skipped."""
+    path = preferences_path()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_write(path, "w", encoding="utf-8") as handle:
+            json.dump(prefs, handle, indent=1)
+    except OSError:
+        pass
+
+
 def _package_dir() -> Path:
     return Path(__file__).resolve().parent
 

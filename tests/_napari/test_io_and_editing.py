@@ -238,6 +238,24 @@ def test_handedness_choice_reaches_the_model(labelled_viewer, monkeypatch):
     assert seen == ["auto", "mirrored"] and widget.last_error is None
 
 
+def test_handedness_diameter_and_colour_are_kept_for_the_next_napari_session(make_napari_viewer, tmp_path):
+    from napari_fdlc._napari._widget import AutoLabelWidget
+    from napari_fdlc.review import preferences_path
+
+    widget = AutoLabelWidget(make_napari_viewer())
+    assert widget.chirality_combo.currentData() == "auto" and widget.colour_check.isChecked()
+    widget.chirality_combo.setCurrentIndex(widget.chirality_combo.findData("mirrored"))
+    widget.diameter_spin.setValue(3.5)
+    widget.colour_check.setChecked(False)
+    assert tmp_path in preferences_path().parents  # the test's own user folder (conftest)
+    again = AutoLabelWidget(make_napari_viewer())
+    assert again.chirality_combo.currentData() == "mirrored"
+    assert again.diameter_spin.value() == 3.5 and not again.colour_check.isChecked()
+    preferences_path().write_text("{not json")  # a damaged file: the defaults, no error
+    fresh = AutoLabelWidget(make_napari_viewer())
+    assert fresh.chirality_combo.currentData() == "auto" and fresh.diameter_spin.value() == 3.0
+
+
 def test_templates_of_another_handedness_are_mirrored_back_with_a_warning(make_napari_viewer, templates, monkeypatch):
     from napari_fdlc.table import NeuronTable
 
