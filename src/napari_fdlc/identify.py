@@ -20,6 +20,7 @@ napari's plugin discovery stay fast.
 from __future__ import annotations
 
 import json
+import threading
 from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
@@ -85,6 +86,10 @@ WARP_SAME_WORM_UM = 0.7
 WARP_RESIDUAL_SCALE = 2.5
 WARP_WIDTH_UM = (1.0, 10.0)
 WARP_SMOOTHNESS = 1.0
+
+
+TRACE_LOCK = threading.Lock()  # see Identifier._model_pass
+WARM_UP_LOCK = threading.Lock()  # one warm-up at a time (several widgets may start one)
 
 
 def shipped_weights() -> Path:
@@ -256,11 +261,17 @@ class Identifier:
 
         inputs = (tmpl, test, tmpl_mask, test_mask, tmpl_c, test_c)
         key = (tmpl.shape[0], test.shape[0], *(x is not None for x in inputs[2:]))
-        if key not in self._traced:
-            if len(self._traced) >= 16:  # batch shapes seen are few; never let them pile up
-                self._traced.clear()
-            self._traced[key] = trace_model(self.model, *inputs)
-        return self._traced[key](*(x for x in inputs if x is not None))
+        traced = self._traced.get(key)
+        if traced is None:
+            # One trace at a time in the process: a widget's warm-up thread and a job may meet
+            # here, and neither torch.jit.trace nor the warnings filter around it is thread-safe.
+            with TRACE_LOCK:
+                traced = self._traced.get(key)
+                if traced is None:
+                    if len(self._traced) >= 16:  # batch shapes seen are few; never let them pile up
+                        self._traced.clear()
+                    traced = self._traced[key] = trace_model(self.model, *inputs)
+        return traced(*(x for x in inputs if x is not None))
 
     def _padded(self, points: list[np.ndarray], colours: list[np.ndarray] | None):
         """(B, size, 3) tensor, its (B, size) mask of real rows (None without padding) and the
@@ -955,13 +966,16 @@ def _agreement_with_fixed(per_candidate, templates: list[NeuronTable], fixed: di
 
 
 _DEFAULT: dict = {}
+_DEFAULT_LOCK = threading.Lock()
 
 
 def default_identifier() -> Identifier:
-    """The shipped model, loaded once per process."""
-    if "identifier" not in _DEFAULT:
-        _DEFAULT["identifier"] = Identifier.load()
-    return _DEFAULT["identifier"]
+    """The shipped model, loaded once per process (a widget's warm-up thread and a job may ask
+    at the same time)."""
+    with _DEFAULT_LOCK:
+        if "identifier" not in _DEFAULT:
+            _DEFAULT["identifier"] = Identifier.load()
+        return _DEFAULT["identifier"]
 
 
 def shipped_tracking_weights() -> Path:
@@ -977,9 +991,10 @@ def default_tracker(device: str | None = None) -> Identifier:
 
         device = "cuda" if torch.cuda.is_available() else "cpu"
     key = ("tracker", device)
-    if key not in _DEFAULT:
-        _DEFAULT[key] = Identifier.load(shipped_tracking_weights(), device)
-    return _DEFAULT[key]
+    with _DEFAULT_LOCK:
+        if key not in _DEFAULT:
+            _DEFAULT[key] = Identifier.load(shipped_tracking_weights(), device)
+        return _DEFAULT[key]
 
 
 def harmonised_templates(templates: list[NeuronTable]) -> tuple[list[NeuronTable], list[int]]:
@@ -1052,6 +1067,7 @@ def warm_up(identifier: Identifier | None = None, templates: list[NeuronTable] |
     try:
         worm = generate_worm(seed=0)
         test = NeuronTable(worm.xyz, worm.colours, source="warm-up")  # no names: a test
-        label_neurons(test, templates, use_colour=use_colour, identifier=identifier)
+        with WARM_UP_LOCK:
+            label_neurons(test, templates, use_colour=use_colour, identifier=identifier)
     except FdlcError:
         pass

@@ -623,11 +623,12 @@ def warm_up(identifier=None) -> None:
     """Track a short generated recording (a full chunk after its first volume) and throw the
     result away: the first real call then pays neither torch's import, the two models' loads
     nor their traces (the Track widget runs it when docked). Errors are left to the real call."""
-    from .identify import default_identifier
+    from .identify import WARM_UP_LOCK, default_identifier
     from .reference import generate_worm
 
     try:
         sequence, _ = simulate_sequence(generate_worm(seed=0), 0, SequenceParams(frames=TrackSettings().chunk + 1))
-        track(sequence, identifier=identifier or default_identifier())
+        with WARM_UP_LOCK:
+            track(sequence, identifier=identifier or default_identifier())
     except FdlcError:
         pass
