@@ -256,6 +256,21 @@ def test_handedness_diameter_and_colour_are_kept_for_the_next_napari_session(mak
     assert fresh.chirality_combo.currentData() == "auto" and fresh.diameter_spin.value() == 3.0
 
 
+def test_left_right_names_that_mirror_the_worm_suggest_setting_the_handedness(make_napari_viewer):
+    from types import SimpleNamespace
+
+    from napari_fdlc._napari._widget import BUILTIN, AutoLabelWidget
+
+    widget = AutoLabelWidget(make_napari_viewer())
+    mirrored, proper = SimpleNamespace(info={"mirrored": True}), SimpleNamespace(info={"mirrored": False})
+    hint = widget._handedness_hint(mirrored, {3: "AVAL", 5: "AVG"}, BUILTIN, "auto")
+    assert "AVAL" in hint and "AVG" not in hint and "'mirrored'" in hint
+    assert widget._handedness_hint(proper, {3: "AVAL"}, BUILTIN, "auto") is None
+    assert widget._handedness_hint(mirrored, {5: "AVG"}, BUILTIN, "auto") is None  # no left/right name
+    assert widget._handedness_hint(mirrored, {3: "AVAL"}, BUILTIN, "mirrored") is None  # already set
+    assert widget._handedness_hint(mirrored, {3: "AVAL"}, "my_template", "auto") is None  # not the atlas
+
+
 def test_templates_of_another_handedness_are_mirrored_back_with_a_warning(make_napari_viewer, templates, monkeypatch):
     from napari_fdlc.table import NeuronTable
 

@@ -782,8 +782,29 @@ class AutoLabelWidget(QWidget):
             session.settings.update({"template": template_text, "colour": use_colour})
             session.set_labelling(labelling, "re-label")
             self._status(f"re-labelled ({len(fixed)} of your names fixed)")
+            hint = self._handedness_hint(labelling, fixed, template_text, chirality)
+            if hint:
+                self._notify_info(hint)
 
         return self._start(work, done, wait, "re-label")
+
+    def _handedness_hint(self, labelling, fixed: dict[int, str], template_text: str, chirality: str) -> str | None:
+        """A hint when the user's left/right names placed the worm mirrored relative to the
+        built-in atlas while Handedness is on auto: a microscope that mirrors z does so for
+        every recording, and Handedness set once (it is kept) names the next ones right from
+        the start (held-out SF: 12.0 % one worm at a time on auto, 63.1 % with it set)."""
+        if template_text != BUILTIN or chirality != "auto" or not labelling.info.get("mirrored"):
+            return None
+        from ..reference import load_panel
+
+        names = set(load_panel().atlas.names)
+        swap = {"L": "R", "R": "L"}
+        sided = [n for n in fixed.values() if n[-1:] in swap and n[:-1] + swap[n[-1]] in names]
+        if not sided:
+            return None
+        return (f"your names ({', '.join(sorted(sided)[:3])}) put this recording mirrored relative to the "
+                "atlas: if your microscope always mirrors z, set Handedness to 'mirrored' (it is kept "
+                "for the next sessions)")
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block (processing GUI events) until the running job is done; True when idle."""
