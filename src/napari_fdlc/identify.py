@@ -24,7 +24,7 @@ import threading
 from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -89,6 +89,17 @@ WARP_SMOOTHNESS = 1.0
 
 
 TRACE_LOCK = threading.Lock()  # see Identifier._model_pass
+
+
+class AtlasView(NamedTuple):
+    """A test placed in the atlas's frame in one handedness (:meth:`Identifier._atlas_views`),
+    with the model's log p against the atlas's mean worm there (None: not asked)."""
+
+    atlas: Atlas
+    placement: Placement
+    worm: NeuronTable | None = None
+    worm_log_p: np.ndarray | None = None
+
 WARM_UP_LOCK = threading.Lock()  # one warm-up at a time (several widgets may start one)
 
 
@@ -577,24 +588,24 @@ class Identifier:
         return out
 
     def _join_atlas(self, test: NeuronTable, names: list[str], probs: np.ndarray, assign_probs: np.ndarray,
-                    use_colour: bool, view: tuple | None):
+                    use_colour: bool, view: AtlasView | None):
         """(probs, assign_probs, joined): the templates' answer over ``names``, averaged with the
         model's answer against the atlas's mean worm (:meth:`_atlas_worm_answer`, at
         ``atlas_worm_weight``), times the atlas's own posterior at the test's placement there
         (:func:`napari_fdlc.register.posterior`, in the template's names, see :func:`_in_names`)
-        raised to ``atlas_weight``; ``view`` is the test's (atlas, placement, log p against the
-        mean worm) from :meth:`_atlas_views`; unchanged (joined False) without one."""
+        raised to ``atlas_weight``; ``view`` is the test's from :meth:`_atlas_views`; unchanged
+        (joined False) without one."""
         if view is None:
             return probs, assign_probs, False
-        atlas, placement, worm_log_p = view
+        atlas = view.atlas
         weight = self.settings.atlas_weight if use_colour else self.settings.atlas_weight_position
         worm_weight = self.settings.atlas_worm_weight if use_colour else self.settings.atlas_worm_weight_position
-        if worm_log_p is not None:
-            worm_probs, worm_assign = self._atlas_worm_answer(test, worm_log_p, names, probs, assign_probs, use_colour)
+        if view.worm_log_p is not None:
+            worm_probs, worm_assign = self._atlas_worm_answer(test, view, names, probs, assign_probs, use_colour)
             probs = (1 - worm_weight) * probs + worm_weight * worm_probs
             assign_probs = (1 - worm_weight) * assign_probs + worm_weight * worm_assign
         if weight > 0:
-            resp, none = posterior(test, atlas.mixture(), placement.xyz, use_colour)
+            resp, none = posterior(test, atlas.mixture(), view.placement.xyz, use_colour)
             prior = _in_names(resp, none, atlas.names, names)
             # Names on the product itself; the probabilities reported temper the atlas's part
             # like the model's (the temperature divides the whole log-answer).
@@ -602,8 +613,8 @@ class Identifier:
         return probs, assign_probs, True
 
     def _atlas_views(self, tests: list[NeuronTable], template: NeuronTable, wanted: list[tuple[bool, ...]],
-                     use_colour: bool, atlas: Atlas | None) -> list[dict]:
-        """For each test, {mirrored_to_template: (atlas, placement, log p)} in each handedness
+                     use_colour: bool, atlas: Atlas | None) -> list[dict[bool, AtlasView]]:
+        """For each test, {mirrored_to_template: :class:`AtlasView`} in each handedness
         of ``wanted`` (relative to the template): the test placed in the atlas's frame
         (:meth:`_atlas_placement`, both handedness in one registration) and the model's log p
         against the atlas's mean worm there (None when ``atlas_worm_weight`` is 0 or the test is
@@ -622,7 +633,7 @@ class Identifier:
                 continue
             placements = self._atlas_placement(test, template, handedness, atlas, use_colour)
             for mirrored, placement in zip(handedness, placements or ()):
-                views[k][mirrored] = (atlas, placement, None)
+                views[k][mirrored] = AtlasView(atlas, placement)
                 if worm_weight > 0 and not placement.partial_view:
                     passes.append((k, mirrored, placement))
         if passes:
@@ -639,7 +650,7 @@ class Identifier:
                 tc, sc = self._model_colours(worm, [tests[k] for k, _, _ in group], use_colour)
                 log_ps = self._forward_grid([worm.xyz], [p.xyz for _, _, p in group], None if tc is None else [tc], sc)[0]
                 for (k, mirrored, placement), log_p in zip(group, log_ps):
-                    views[k][mirrored] = (atlas, placement, log_p)
+                    views[k][mirrored] = AtlasView(atlas, placement, worm, log_p)
         return views
 
     def _atlas_placement(self, test: NeuronTable, template: NeuronTable, handedness: tuple[bool, ...], atlas: Atlas,
@@ -662,14 +673,14 @@ class Identifier:
         # below the non-learned floor (held out, 32.9 -> 23.2 %; docs/benchmarks.md).
         return atlas.register(test, use_colour, chiralities=chiralities, stretch_z=False)
 
-    def _atlas_worm_answer(self, test: NeuronTable, log_p: np.ndarray, names: list[str], probs: np.ndarray,
+    def _atlas_worm_answer(self, test: NeuronTable, view: AtlasView, names: list[str], probs: np.ndarray,
                            assign_probs: np.ndarray, use_colour: bool):
         """The model's answer (reported, and without the temperature for the assignment) for
-        the test placed in the atlas's frame against the atlas's mean worm (``log_p``, from
+        the test placed in the atlas's frame against the atlas's mean worm (``view``, from
         :meth:`_atlas_views`), in the template's ``names`` (N, names): a name the atlas lacks
         keeps the template's own probability (no opinion); what the atlas gives names the
         template lacks is "no named match"."""
-        worm = self._mean_worm[1]
+        worm, log_p = view.worm, view.worm_log_p
         colour = self._colour_evidence(worm, test, self._takes_colour([worm, test], use_colour)) if use_colour else None
         column = {n: i for i, n in enumerate(worm.labels)}
         known = np.array([n in column for n in names], dtype=bool)
