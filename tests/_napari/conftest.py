@@ -48,10 +48,12 @@ def pytest_report_header(config):
 
 @pytest.fixture(autouse=True)
 def _warm_up_ends_with_its_test():
-    """A widget's warm-up thread (AutoLabelWidget._warm_up) never runs on into the next test."""
+    """A widget's warm-up thread (_napari/_warm_up.py) never runs on into the next test."""
     yield
+    from napari_fdlc._napari._warm_up import THREAD_NAME
+
     for thread in threading.enumerate():
-        if thread.name == "napari-fdlc warm-up":
+        if thread.name == THREAD_NAME:
             thread.join()
 
 

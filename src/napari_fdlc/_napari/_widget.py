@@ -80,6 +80,7 @@ from ._layers import (
     review_points,
     table_from_layer,
 )
+from ._warm_up import start_warm_up
 
 if TYPE_CHECKING:
     import napari
@@ -150,12 +151,9 @@ class AutoLabelWidget(QWidget):
         QTimer.singleShot(0, self._warm_up)
 
     def _warm_up(self) -> None:
-        """The model's first use (torch's import, the shipped weights' load, the panel's
-        caches, the model's traces: ~1.5 s on two cores) starts as soon as the widget is shown,
-        while the user picks the channels, so that the first Auto-label names as fast as the
-        next ones (~0.15 s; :func:`napari_fdlc.identify.warm_up`). Jobs join it before they
-        name (one model, used by one thread at a time); a job that starts first warms the
-        model itself. Not a daemon thread, so that the interpreter never exits under torch."""
+        """Name a generated worm as the user's will be (:func:`napari_fdlc.identify.warm_up`,
+        ~1.5 s on two cores with torch's import, the panel's caches and the traces) in a thread
+        (see ``_warm_up.py``); a job that starts first warms the model itself."""
         if self._busy or self._warming is not None:
             return
         identifier, chirality = self.identifier, self.chirality_combo.currentData()
@@ -164,9 +162,13 @@ class AutoLabelWidget(QWidget):
             templates = self._templates()[0]
         except FdlcError:
             templates = None
-        self._warming = threading.Thread(target=_warm_up, args=(identifier, chirality, templates, use_colour),
-                                         name="napari-fdlc warm-up")
-        self._warming.start()
+
+        def warm():
+            from ..identify import warm_up
+
+            warm_up(_with_chirality(identifier, chirality), templates, use_colour)
+
+        self._warming = start_warm_up(warm)
 
     def _apply_preferences(self) -> None:
         """The handedness, nucleus diameter and colour choice of the last napari session: a
@@ -1415,15 +1417,6 @@ def _saved_session(image_key: str) -> ReviewSession | None:
 
 
 CHIRALITY_CHOICES = (("auto", "auto"), ("same", "as the template / atlas"), ("mirrored", "mirrored"))
-
-
-def _warm_up(identifier, chirality: str, templates, use_colour: bool) -> None:
-    from ..identify import warm_up
-
-    try:
-        warm_up(_with_chirality(identifier, chirality), templates, use_colour)
-    except Exception:  # a broken install is reported by the first real job, in the GUI
-        pass
 
 
 def _with_chirality(identifier, chirality: str):

@@ -42,6 +42,7 @@ from qtpy.QtWidgets import (
 )
 
 from ..errors import FdlcError
+from ._warm_up import start_warm_up
 
 if TYPE_CHECKING:  # pragma: no cover
     import napari
@@ -117,13 +118,19 @@ class TrackWidget(QWidget):
         QTimer.singleShot(0, self._warm_up)
 
     def _warm_up(self) -> None:
-        """Load and run both models once in a thread while the user picks the files
-        (:func:`napari_fdlc.track.warm_up`; torch's import and the weights' loads are ~1 s on
-        two cores), as the Auto-label widget does; a job joins it before tracking."""
+        """Run both models once on a generated recording (:func:`napari_fdlc.track.warm_up`;
+        torch's import and the weights' loads are ~1 s on two cores) in a thread while the user
+        picks the files (see ``_warm_up.py``); a job joins it before tracking."""
         if self._busy or self._warming is not None:
             return
-        self._warming = threading.Thread(target=_warm_up, args=(self.identifier,), name="napari-fdlc warm-up")
-        self._warming.start()
+        identifier = self.identifier
+
+        def warm():
+            from ..track import warm_up
+
+            warm_up(identifier)
+
+        self._warming = start_warm_up(warm)
 
     # ------------------------------------------------------------------------------------------
     def _build_ui(self) -> None:
@@ -289,11 +296,3 @@ class TrackWidget(QWidget):
         self.progress_bar.setValue(int(round(100 * done / max(total, 1))))
         self.status.setText(f"tracking… {done}/{total} volumes")
 
-
-def _warm_up(identifier) -> None:
-    from ..track import warm_up
-
-    try:
-        warm_up(identifier)
-    except Exception:  # a broken install is reported by the first real job, in the GUI
-        pass
