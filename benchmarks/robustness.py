@@ -128,6 +128,7 @@ TRANSFORMS = {
     "+20 over 30 µm of body": with_body(20, 30),
     "+40 over 60 µm of body": with_body(40, 60),
     "+120 over 250 µm of body": with_body(120, 250),
+    "and tilted 30°": turned(30),  # last: each column's seed is its place here
 }
 
 

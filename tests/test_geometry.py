@@ -24,3 +24,28 @@ def test_grid_centres_are_the_means_of_occupied_cells():
     xyz = np.array([[0.0, 0, 0], [1, 1, 1], [12, 0, 0], [13, 2, 0], [0, 0, 14]])
     centres = _grid_centres(xyz, 10.0)
     assert sorted(map(tuple, np.round(centres, 6))) == [(0.0, 0.0, 14.0), (0.5, 0.5, 0.5), (12.5, 1.0, 0.0)]
+
+
+def test_canonical_frame_levels_a_raised_body_axis_and_leaves_a_flat_one():
+    """Worms lie flat: z is left alone unless the body axis rises more than LEVEL_ABOVE_DEG out
+    of the image plane, when the frame turns it back into the plane (a proper rotation)."""
+    from napari_fdlc.geometry import LEVEL_ABOVE_DEG, canonical_frame
+
+    rng = np.random.default_rng(0)
+    flat = np.c_[rng.uniform(-60, 60, 150), rng.normal(0, 8, 150), rng.normal(0, 6, 150)]
+
+    def rise(canon):
+        axis = np.linalg.eigh(np.cov(canon.T))[1][:, -1]
+        return np.degrees(np.arcsin(abs(axis[2])))
+
+    for degrees in (LEVEL_ABOVE_DEG / 2, 25.0):
+        t = np.radians(degrees)
+        pitch = np.array([[np.cos(t), 0, -np.sin(t)], [0, 1, 0], [np.sin(t), 0, np.cos(t)]])
+        xyz = flat @ pitch.T @ np.array([[0.6, -0.8, 0], [0.8, 0.6, 0], [0, 0, 1]]).T + [5.0, -3.0, 2.0]
+        canon, centre, rotation = canonical_frame(xyz)
+        assert np.allclose(rotation @ rotation.T, np.eye(3)) and np.isclose(np.linalg.det(rotation), 1.0)
+        assert np.allclose(canon, (xyz - centre) @ rotation.T)
+        if degrees < LEVEL_ABOVE_DEG:  # z untouched
+            assert np.allclose(rotation[2], [0, 0, 1]) and np.isclose(rise(canon), degrees, atol=1.5)
+        else:
+            assert rise(canon) < 0.1

@@ -102,7 +102,10 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     With ``mixture.partial_views``, a test that covers less of the body than the reference
     starts at ``mixture.partial_view_scale`` and at several offsets along the body axis
     (:func:`partial_view_shifts`), and twice as many starts are kept."""
-    canon = canonical_frame(test.xyz)[0]
+    canon, _, frame = canonical_frame(test.xyz)
+    # The optical axis in the canonical frame: z itself, unless a tilted worm was levelled.
+    # The stretch acts along it (what differs between labs is the z step's calibration).
+    optical = frame[:, 2]
 
     def shifts_of(points):
         if not mixture.partial_views:
@@ -135,9 +138,10 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     chosen = np.concatenate([np.flatnonzero(mirrored == m)[np.argsort(-coarse[mirrored == m])[:keep]] for m in chiralities])
     points = starts[chosen]  # EM from every kept start at once: (S, N, 3)
     stretchable = mixture.z_scale_range != (1.0, 1.0)
-    if stretchable:  # points = (canon stretched along z by stretch) @ linear + shift
+    if stretchable:  # points = (canon stretched along the optical axis by stretch) @ linear + shift
         linear = np.transpose(rotations[chosen], (0, 2, 1))
         stretch = np.ones(len(chosen), f32)
+        canon_z = canon @ optical.astype(f32)
     for _ in range(iterations):
         resp = _log_likelihood(log_components(points), responsibilities=True)[1]
         weight = resp.sum(axis=-1)
@@ -145,7 +149,8 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         points, scale, rotation = _weighted_similarity(points, targets, weight, mixture.scale_range)
         if stretchable:
             linear = scale[:, None, None] * linear @ rotation
-            points, stretch = _stretch_z(points, targets, weight, canon[:, 2], linear[:, 2], stretch, mixture.z_scale_range)
+            points, stretch = _stretch_z(points, targets, weight, canon_z, optical.astype(f32) @ linear, stretch,
+                                        mixture.z_scale_range)
     scores = _log_likelihood(log_components(points)).mean(axis=-1, dtype=np.float64)
     points = points.astype(np.float64)
     if every_start:
@@ -297,8 +302,9 @@ def _weighted_similarity(points: np.ndarray, targets: np.ndarray, weight: np.nda
 
 
 def _stretch_z(points, targets, weight, canon_z, z_image, stretch, z_scale_range):
-    """``points`` (S, N, 3), placed from the test's canonical frame stretched along z by
-    ``stretch`` (S,), where its z axis now points along ``z_image`` (S, 3), moved by the weighted
+    """``points`` (S, N, 3), placed from the test's canonical frame stretched along its optical
+    axis by ``stretch`` (S,) (``canon_z``: each point's coordinate along that axis, which now
+    points along ``z_image`` (S, 3)), moved by the weighted
     least-squares change of that stretch toward ``targets`` (the rest of the placement kept),
     the stretch kept within ``z_scale_range``. Returns the points and the new stretches."""
     base_z = canon_z[None] * stretch[:, None]  # (S, N)
