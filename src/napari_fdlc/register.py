@@ -54,18 +54,20 @@ class Mixture:
     log_weight: np.ndarray  # (K,)
     colour: np.ndarray | None  # (K, 3) normal scores of R, G, B, or None
     colour_var: np.ndarray | None  # (K, 3)
-    # Bounds on the fitted scale. The atlas is smaller than real worms (Procrustes shrinks it)
-    # and needs some freedom; a template is in µm like the test, and a free scale let EM shrink
-    # the test into the dense head (pairs top-1 with colour fell by 5–35 points).
+    # Bounds on the fitted scale, in total, relative to the size the test is expected to have
+    # here (partial_view_scale). Labs' worms differ in size and the atlas needs some freedom;
+    # a template is in µm like the test, and a free scale let EM shrink the test into the dense
+    # head (pairs top-1 with colour fell by 5–35 points).
     scale_range: tuple[float, float] = (1.0, 1.0)
     # The reference spans the whole head (the atlas) while a test may show part of it: start
     # also at offsets along the body axis (partial_view_shifts). Between two worms of a lab it
     # cost SK1's pairs 4.6 points (their fields of view vary), so templates do not.
     partial_views: bool = False
-    # The test's size relative to the reference that the starts of a partial view assume. The
-    # atlas is smaller than real worms (Procrustes): 1 / Atlas.worm_scale. A whole head starts
-    # at scale 1 and EM shrinks it; from a partial view EM did not find the pose its names give
-    # (the likelihood there is higher than at every pose found: a search failure).
+    # The test's size relative to the reference (µm): what scale_range bounds, and where the
+    # starts of a partial view are. The atlas is smaller than real worms (Procrustes): 1 /
+    # Atlas.worm_scale. A whole head starts at scale 1 and EM shrinks it; from a partial view
+    # EM did not find the pose its names give (the likelihood there is higher than at every
+    # pose found: a search failure).
     partial_view_scale: float = 1.0
     # Bounds on a stretch of the test along its own z (the optical axis) on top of the
     # similarity: labs differ in apparent z scale (refractive-index mismatch between immersion
@@ -142,11 +144,20 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         linear = np.transpose(rotations[chosen], (0, 2, 1))
         stretch = np.ones(len(chosen), f32)
         canon_z = canon @ optical.astype(f32)
+    # The scale is bounded in total, relative to the size the test is expected to have in the
+    # reference's frame (the starts of a partial view are at that size, a whole head's are in
+    # µm). Each EM step's similarity is biased toward shrinking (its targets are posterior
+    # means, pulled toward the middle by diffuse responsibilities), and a bound per step let
+    # the steps compound: NP's heads ended at 0.64 of the scale their names give.
+    expected = 1.0 if partial else mixture.partial_view_scale
+    low, high = (expected * bound for bound in mixture.scale_range)
+    total_scale = np.ones(len(chosen), f32)
     for _ in range(iterations):
         resp = _log_likelihood(log_components(points), responsibilities=True)[1]
         weight = resp.sum(axis=-1)
         targets = (resp @ mean) / np.maximum(weight[..., None], 1e-12)
-        points, scale, rotation = _weighted_similarity(points, targets, weight, mixture.scale_range)
+        points, scale, rotation = _weighted_similarity(points, targets, weight, (low / total_scale, high / total_scale))
+        total_scale = total_scale * scale
         if stretchable:
             linear = scale[:, None, None] * linear @ rotation
             points, stretch = _stretch_z(points, targets, weight, canon_z, optical.astype(f32) @ linear, stretch,
@@ -287,8 +298,8 @@ _START_ROTATIONS, _START_MIRRORED = _start_rotations()
 
 def _weighted_similarity(points: np.ndarray, targets: np.ndarray, weight: np.ndarray, scale_range) -> np.ndarray:
     """``points`` (S, N, 3) each moved by the weighted least-squares proper similarity onto
-    ``targets`` (S, N, 3), weights (S, N); the scale clipped to ``scale_range`` (a cropped field
-    of view must not shrink the worm)."""
+    ``targets`` (S, N, 3), weights (S, N); the scale clipped to ``scale_range`` (low, high:
+    numbers, or one per start)."""
     w = weight / np.maximum(weight.sum(axis=-1, keepdims=True), 1e-12)
     mu_p, mu_t = np.einsum("sn,snd->sd", w, points), np.einsum("sn,snd->sd", w, targets)
     p0, t0 = points - mu_p[:, None], targets - mu_t[:, None]
