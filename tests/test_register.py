@@ -267,3 +267,25 @@ def test_a_worm_tilted_out_of_the_image_plane_lands_on_the_atlas():
         placed = atlas.register(test, chiralities=(False,))[0]
         error = np.median(np.linalg.norm(placed.xyz - atlas.mean[rows], axis=1))
         assert error < own + 0.8, (error, own)
+
+
+def test_the_scale_bound_holds_for_the_whole_fit():
+    """The atlas's scale bound (0.8-1.25 of the size a test is expected to have there) holds
+    for the whole EM fit: a worm twice the expected size stops at the bound. Bounded per EM
+    step, the steps compounded (NP's heads shrank to 0.64 of the scale their names give)."""
+    from dataclasses import replace
+
+    from napari_fdlc.geometry import canonical_frame
+    from napari_fdlc.table import NeuronTable
+
+    atlas = load_atlas()
+    mixture = replace(atlas.mixture(), z_scale_range=(1.0, 1.0))
+    rng = np.random.default_rng(8)
+    worm = atlas_worm(atlas, rng)
+    low, high = (mixture.partial_view_scale * b for b in mixture.scale_range)
+    for size in (0.5, 2.0):
+        test = NeuronTable(worm.xyz * size, worm.colours, worm.labels)
+        placed = register(test, mixture, chiralities=(False,))[0].xyz
+        canon = canonical_frame(test.xyz)[0]
+        scale = np.sqrt(((placed - placed.mean(0)) ** 2).sum() / ((canon - canon.mean(0)) ** 2).sum())
+        assert low - 1e-4 <= scale <= high + 1e-4, (size, scale, low, high)
