@@ -49,3 +49,14 @@ def test_canonical_frame_levels_a_raised_body_axis_and_leaves_a_flat_one():
             assert np.allclose(rotation[2], [0, 0, 1]) and np.isclose(rise(canon), degrees, atol=1.5)
         else:
             assert rise(canon) < 0.1
+
+
+def test_no_corpus_worm_is_levelled(corpus_path):
+    """The corpus's worms lie flat (their body axis rises 5.2° at most): the levelling leaves
+    every one of them in its plain XY frame, so no corpus figure depends on it."""
+    from napari_fdlc.corpus import load_corpus
+    from napari_fdlc.geometry import canonical_frame
+
+    for worm in load_corpus(corpus_path):
+        rotation = canonical_frame(worm.table.xyz)[2]
+        assert np.array_equal(rotation[2], [0.0, 0.0, 1.0]), worm.source
