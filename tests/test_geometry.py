@@ -49,6 +49,11 @@ def test_canonical_frame_levels_a_raised_body_axis_and_leaves_a_flat_one():
             assert np.allclose(rotation[2], [0, 0, 1]) and np.isclose(rise(canon), degrees, atol=1.5)
         else:
             assert rise(canon) < 0.1
+    # A short, round piece of a worm has no axis to level, however it is turned.
+    blob = np.c_[rng.normal(0, 10, 60), rng.normal(0, 8, 60), rng.normal(0, 6, 60)]
+    t = np.radians(30)
+    pitch = np.array([[np.cos(t), 0, -np.sin(t)], [0, 1, 0], [np.sin(t), 0, np.cos(t)]])
+    assert np.array_equal(canonical_frame(blob @ pitch.T)[2][2], [0.0, 0.0, 1.0])
 
 
 def test_no_corpus_worm_is_levelled(corpus_path):
