@@ -89,6 +89,7 @@ WARP_SMOOTHNESS = 1.0
 
 
 TRACE_LOCK = threading.Lock()  # see Identifier._model_pass
+WARM_UP_LOCK = threading.Lock()  # one warm-up at a time (several widgets may start one)
 
 
 class AtlasView(NamedTuple):
@@ -99,8 +100,6 @@ class AtlasView(NamedTuple):
     placement: Placement
     worm: NeuronTable | None = None
     worm_log_p: np.ndarray | None = None
-
-WARM_UP_LOCK = threading.Lock()  # one warm-up at a time (several widgets may start one)
 
 
 def shipped_weights() -> Path:

@@ -107,7 +107,7 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     canon, _, frame = canonical_frame(test.xyz)
     # The optical axis in the canonical frame: z itself, unless a tilted worm was levelled.
     # The stretch acts along it (what differs between labs is the z step's calibration).
-    optical = frame[:, 2]
+    optical = frame[:, 2].astype(np.float32)
 
     def shifts_of(points):
         if not mixture.partial_views:
@@ -143,7 +143,7 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     if stretchable:  # points = (canon stretched along the optical axis by stretch) @ linear + shift
         linear = np.transpose(rotations[chosen], (0, 2, 1))
         stretch = np.ones(len(chosen), f32)
-        canon_z = canon @ optical.astype(f32)
+        canon_z = canon @ optical
     # The scale is bounded in total, relative to the size the test is expected to have in the
     # reference's frame (the starts of a partial view are at that size, a whole head's are in
     # µm). Each EM step's similarity is biased toward shrinking (its targets are posterior
@@ -160,8 +160,7 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         total_scale = total_scale * scale
         if stretchable:
             linear = scale[:, None, None] * linear @ rotation
-            points, stretch = _stretch_z(points, targets, weight, canon_z, optical.astype(f32) @ linear, stretch,
-                                        mixture.z_scale_range)
+            points, stretch = _stretch_z(points, targets, weight, canon_z, optical @ linear, stretch, mixture.z_scale_range)
     scores = _log_likelihood(log_components(points)).mean(axis=-1, dtype=np.float64)
     points = points.astype(np.float64)
     if every_start:

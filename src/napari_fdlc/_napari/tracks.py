@@ -295,4 +295,3 @@ class TrackWidget(QWidget):
     def _on_progress(self, done: int, total: int) -> None:
         self.progress_bar.setValue(int(round(100 * done / max(total, 1))))
         self.status.setText(f"tracking… {done}/{total} volumes")
-
