@@ -172,6 +172,25 @@ def main(argv=None) -> int:
                 len(sequence),
             ),
         }
+        if device == "cpu":
+            # What is not the network: the same pipeline with an untrained 1-layer, dim-16 model
+            # in its place (registrations, the atlas's answer, assignment, probabilities). A
+            # smaller trained model could only save the difference to the rows above.
+            from napari_fdlc.model import CorrespondenceModel
+
+            torch.manual_seed(args.seed)
+            tiny = Identifier(CorrespondenceModel({**ident.model.config, "dim": 16, "heads": 2, "layers": 1}).eval(),
+                              ident.settings, device)
+            configs["everything but the network, 1 template (a 1-layer dim-16 model in its place)"] = (
+                lambda: tiny.label(test, [template], atlas=panel.atlas).candidates(3),
+                lambda: [lab.candidates(3) for lab in tiny.label_many(tests, [template], atlas=panel.atlas)],
+                len(tests),
+            )
+            configs[f"everything but the network, panel ({len(panel.templates)} templates)"] = (
+                lambda: tiny.label_panel(test, panel).candidates(3),
+                lambda: [tiny.label_panel(t, panel).candidates(3) for t in tests[:16]],
+                16,
+            )
         for name, (one, many, count) in configs.items():
             row = rows.setdefault(name, {})
             if "track" in name:
