@@ -94,9 +94,11 @@ def test_a_partial_field_of_view_is_searched_along_the_body():
     assert error(atlas.mixture()) < 4.0 < 10.0 < error(replace(atlas.mixture(), partial_views=False))
 
 
-def test_a_short_partial_view_at_real_size_starts_at_the_atlas_scale():
-    """The last quarter of a head at a real worm's size (the atlas is smaller): started at
-    scale 1, EM lands tens of µm off; at 1 / worm_scale it lands on the names' means."""
+def test_a_short_partial_view_at_real_size_is_placed_on_its_names():
+    """The last quarter of a head at a real worm's size (the atlas is smaller) lands on the
+    names' means: started at 1 / worm_scale, and even from a wrong starting scale (1), which
+    the search's PARTIAL_VIEW_KEEP starts cover (with 2× kept, EM landed 26-28 µm off from there
+    on 5 of 6 seeds)."""
     from dataclasses import replace
 
     from napari_fdlc.geometry import canonical_frame
@@ -105,7 +107,6 @@ def test_a_short_partial_view_at_real_size_starts_at_the_atlas_scale():
     atlas = load_atlas()
     assert 1.1 < atlas.worm_scale < 1.5
     index = {n: i for i, n in enumerate(atlas.names)}
-    missed = 0
     for seed in (0, 1, 3):
         rng = np.random.default_rng(seed)
         worm = atlas_worm(atlas, rng)
@@ -118,8 +119,7 @@ def test_a_short_partial_view_at_real_size_starts_at_the_atlas_scale():
             return np.median(np.linalg.norm(register(posed, mixture)[0].xyz - atlas.mean[rows], axis=1))
 
         assert error(atlas.mixture()) < 4.0
-        missed += error(replace(atlas.mixture(), partial_view_scale=1.0)) > 10.0
-    assert missed >= 2
+        assert error(replace(atlas.mixture(), partial_view_scale=1.0)) < 4.0
 
 
 def test_the_atlas_posterior_names_a_posed_worm_without_the_model():

@@ -36,6 +36,13 @@ TEMPLATE_SD = 3.35
 _COLOUR_VAR = 0.15  # added to each component's colour variance (normal-score units)
 _TEMPLATE_COLOUR_SD = 0.4  # one worm's colour against another's, same neuron
 _MIN_SHIFT_UM = 2.0  # below this, the starts' own EM steps cover the offset
+# A partial view keeps this many times ``keep`` starts (of 24 poses × 5 offsets per
+# chirality). EM from fewer missed the pose its names give on 4 of SF's 36 worms although
+# that pose is the likelier one (a search failure, not the likelihood's): 2× kept, 3 of them
+# were named at 0-9 %. 8× (24 starts): the panel on SF, held out, the handedness given, 67.4
+# -> 70.6 % (2× / 4× / 8× / 12× / 16×: 67.4 / 69.2 / 70.6 / 71.3 / 71.5) for 7 ms more per
+# registration (16×: 18 ms); benchmarks.md.
+PARTIAL_VIEW_KEEP = 8
 # A test whose neurons spread further along the body axis than HEAD_WINDOW times the reference's
 # length (5-95 % of its body axis, at the reference's scale) is cut to its head first
 # (head_window). The corpus's heads spread over 1.3-1.7 times the atlas's length, NP's over
@@ -103,7 +110,7 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     ``every_start``, every start's result (``keep`` per chirality) for the caller to choose.
     With ``mixture.partial_views``, a test that covers less of the body than the reference
     starts at ``mixture.partial_view_scale`` and at several offsets along the body axis
-    (:func:`partial_view_shifts`), and twice as many starts are kept."""
+    (:func:`partial_view_shifts`), and PARTIAL_VIEW_KEEP times as many starts are kept."""
     canon, _, frame = canonical_frame(test.xyz)
     # The optical axis in the canonical frame: z itself, unless a tilted worm was levelled.
     # The stretch acts along it (what differs between labs is the z step's calibration).
@@ -119,7 +126,7 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     if partial:  # a partial view: start at the scale it has against the reference
         canon = canon * mixture.partial_view_scale
         shifts = shifts_of(canon)
-    keep = keep if len(shifts) == 1 else 2 * keep
+    keep = keep if len(shifts) == 1 else PARTIAL_VIEW_KEEP * keep
     # The scores of every start are (starts, N, K) exponentials: single precision halves their
     # cost and changes a log-likelihood per neuron by ~1e-6.
     f32 = np.float32
