@@ -177,8 +177,10 @@ def test_a_colour_channel_the_test_lacks_is_left_out_not_all_colour():
 
 def test_mixture_densities_match_their_definition():
     """The fast forms (one matrix product for the Mahalanobis terms; the log-likelihood and the
-    responsibilities from the same exponentials, in place) give the Gaussian mixture with its
-    outlier class as written out directly, for a batch of starts as for one placement."""
+    responsibilities from the same exponentials, in place, relative to the components' bound)
+    give the Gaussian mixture with its outlier class as written out directly, for a batch of
+    starts as for one placement, in single precision too, and for points so far from every
+    component that only the outlier class is left."""
     from scipy.special import logsumexp
 
     from napari_fdlc.register import _OUTLIER_LOG_DENSITY, _log_components, _log_likelihood
@@ -187,16 +189,38 @@ def test_mixture_densities_match_their_definition():
     mean, var = rng.normal(0, 10, (7, 3)), rng.uniform(1, 9, (7, 3))
     constant = rng.normal(0, 1, (5, 7))  # per point and component, as the colour term is
     points = rng.normal(0, 10, (4, 5, 3))
+    points[0, 0] = 500.0  # ~1e4 below every component: an outlier
     direct = constant - 0.5 * (((points[..., None, :] - mean) ** 2) / var).sum(-1)
     coefficients = np.concatenate([-0.5 / var, mean / var], axis=1).T
-    comp = _log_components(points, coefficients, constant - 0.5 * (mean**2 / var).sum(1))
-    assert np.allclose(comp, direct)
+    shift = max(constant.max(), _OUTLIER_LOG_DENSITY)  # direct <= constant: the bound
+    comp = _log_components(points, coefficients, constant - 0.5 * (mean**2 / var).sum(1) - shift)
+    assert np.allclose(comp + shift, direct)
     with_outlier = np.concatenate([direct, np.full(direct.shape[:-1] + (1,), _OUTLIER_LOG_DENSITY)], axis=-1)
     expected = logsumexp(with_outlier, axis=-1)
-    assert np.allclose(_log_likelihood(comp.copy()), expected)
-    total, resp = _log_likelihood(comp, responsibilities=True)
-    assert np.allclose(total, expected)
-    assert np.allclose(resp, np.exp(direct - expected[..., None]))
+    assert np.isclose(expected[0, 0], _OUTLIER_LOG_DENSITY)
+    for dtype, tol in ((np.float64, 1e-9), (np.float32, 1e-4)):
+        assert np.allclose(_log_likelihood(comp.astype(dtype), shift), expected, atol=tol)
+        total, resp = _log_likelihood(comp.astype(dtype), shift, responsibilities=True)
+        assert np.allclose(total, expected, atol=tol)
+        assert np.allclose(resp, np.exp(direct - expected[..., None]), atol=tol)
+
+
+def test_log_components_are_at_most_their_bound():
+    """The shift the registration exponentiates against bounds every component's log-density
+    at any point, with the atlas's colours and a template's (none is above 0 relative to it,
+    so none can overflow), and is not loose by orders of magnitude at the components' means."""
+    from napari_fdlc.reference import generate_worm
+    from napari_fdlc.register import _component_terms, _log_components
+
+    test = generate_worm(seed=5)
+    rng = np.random.default_rng(0)
+    for mixture in (load_atlas().mixture(), template_mixture(generate_worm(seed=6))):
+        coefficients, constant, shift = _component_terms(test, mixture, use_colour=True)
+        spread = rng.normal(0, 30, (1, len(test), 3))
+        at_means = mixture.mean[np.arange(len(test)) % len(mixture.mean)][None]
+        for points in (spread, at_means):
+            assert _log_components(points, coefficients, constant).max() <= 1e-9
+        assert _log_components(at_means, coefficients, constant).max() > -10
 
 
 def _with_body(head, extra: int, length_um: float, rng):
