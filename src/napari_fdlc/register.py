@@ -237,11 +237,12 @@ def _log_likelihood(comp: np.ndarray, shift: float, responsibilities: bool = Fal
     spurious detection); with ``responsibilities``, also the probability (..., N, K) of each
     component at each point (the outlier class has the rest), from the same exponentials.
     ``comp`` is overwritten: these arrays are megabytes (48 starts), and a new one per step
-    cost more than the arithmetic (page faults). Exponentiated relative to the bound rather
-    than to each point's largest component (two passes over the array fewer), from no lower
-    than ``_EXP_FLOOR``: a quarter of the 48 starts' log-densities lie further below, where
-    single precision's exp is denormal and several times slower (coarse scores 5.0 -> 2.8 ms);
-    e^-80 per component is nothing beside the outlier class's e^(-15 - shift)."""
+    cost more than the arithmetic (page faults). Exponentiated relative to the bound, not to
+    each point's largest component (a clamp instead of a maximum and a subtraction: one pass
+    over the array fewer), and from no lower than ``_EXP_FLOOR``: a quarter of the 48 starts'
+    log-densities lie further below, where single precision's exp is denormal and several
+    times slower (their exponentials 5.0 -> 2.8 ms; docs/speed.md). e^-80 per component is
+    nothing beside the outlier class's e^(-15 - shift), and keeps every total above 0."""
     np.maximum(comp, _EXP_FLOOR, out=comp)
     share = np.exp(comp, out=comp)  # each component's density relative to the bound
     total = share.sum(axis=-1) + np.exp(_OUTLIER_LOG_DENSITY - shift)
