@@ -269,6 +269,35 @@ def test_corpus_heads_lose_at_most_a_few_neurons_to_the_window(corpus_path):
         assert rows is None or (worm.lab == "NP" and len(rows) >= 0.95 * len(worm.table)), worm.source
 
 
+def test_corpus_views_shorter_than_half_the_head_are_found_from_every_start(corpus_path):
+    """SF's recordings cut to 60 % of their length (under half the atlas along the body) are
+    placed on their names' means by an atlas without SF, in each worm's own handedness: 10 of
+    its first 12 worms (EM from the coarse scores' 24 best starts per handedness placed 4:
+    SHORT_VIEW); and no corpus worm is that short, so none of their answers changes."""
+    from napari_fdlc.corpus import load_corpus
+    from napari_fdlc.evaluate import mirrored_relative_to
+    from napari_fdlc.geometry import canonical_frame
+    from napari_fdlc.reference import build_atlas
+    from napari_fdlc.register import SHORT_VIEW, _extent
+
+    worms = load_corpus(corpus_path)
+    atlas = build_atlas([w for w in worms if w.lab != "SF"])
+    mixture, index = atlas.mixture(), {n: i for i, n in enumerate(atlas.names)}
+    length = _extent(mixture.mean[:, 0])
+    for worm in worms:
+        x = canonical_frame(worm.table.xyz)[0][:, 0] * mixture.partial_view_scale
+        assert _extent(x) >= SHORT_VIEW * length, worm.source
+    placed_right = 0
+    for worm in [w.table for w in worms if w.lab == "SF"][:12]:
+        centred = worm.xyz - worm.xyz.mean(axis=0)
+        along = centred @ np.linalg.svd(centred, full_matrices=False)[2][0]
+        view = worm.subset(np.flatnonzero(along <= np.quantile(along, 0.6)))
+        placed = register(view, mixture, chiralities=(mirrored_relative_to(atlas, worm),))[0].xyz
+        rows = [k for k, n in enumerate(view.labels) if n in index]
+        placed_right += np.median(np.linalg.norm(placed[rows] - atlas.mean[[index[view.labels[k]] for k in rows]], axis=1)) < 4.0
+    assert placed_right >= 8, placed_right
+
+
 def test_a_worm_tilted_out_of_the_image_plane_lands_on_the_atlas():
     """A head raised 30° out of the image plane (and its z step miscalibrated) is levelled
     before the starts (geometry.canonical_frame): the right placement is about as close to each

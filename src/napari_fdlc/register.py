@@ -43,6 +43,16 @@ _MIN_SHIFT_UM = 2.0  # below this, the starts' own EM steps cover the offset
 # -> 70.6 % (2× / 4× / 8× / 12× / 16×: 67.4 / 69.2 / 70.6 / 71.3 / 71.5) for 7 ms more per
 # registration (16×: 18 ms); benchmarks.md.
 PARTIAL_VIEW_KEEP = 8
+# A view of less than this fraction of the reference's extent along the body (at the size it is
+# expected to have there) runs EM from every start. Such a view fits many places of the head,
+# and the coarse scores kept the wrong ones: SF's worms cropped to 60 % of their length
+# (0.43-0.56 of the atlas) were placed 14-27 µm from their names on 9 of 12 worms, 7 of them at
+# a lower likelihood than where their names are. The shipped model named 21 % of them, 55 %
+# with this (11 of the 12 are under half; 16× / 24× the kept starts instead of all: 42 / 44 %);
+# benchmarks/robustness.py --shipped. Such views have few neurons: EM from all 240 starts took
+# one 40-neuron view's registration from 18 to 63 ms, its panel call from 86 to 125 ms. No
+# corpus worm is this short (SF's shortest: 0.52 of an atlas without SF): none changes.
+SHORT_VIEW = 0.5
 # A test whose neurons spread further along the body axis than HEAD_WINDOW times the reference's
 # length (5-95 % of its body axis, at the reference's scale) is cut to its head first
 # (head_window). The corpus's heads spread over 1.3-1.7 times the atlas's length, NP's over
@@ -128,6 +138,8 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         canon = canon * mixture.partial_view_scale
         shifts = shifts_of(canon)
     keep = keep if len(shifts) == 1 else PARTIAL_VIEW_KEEP * keep
+    if partial and _extent(canon[:, 0]) < SHORT_VIEW * _extent(mixture.mean[:, 0]):
+        keep = len(_START_ROTATIONS) * len(shifts)  # every start: see SHORT_VIEW
     # The scores of every start are (starts, N, K) exponentials: single precision halves their
     # cost and changes a log-likelihood per neuron by ~1e-6.
     f32 = np.float32
