@@ -53,6 +53,7 @@ PARTIAL_VIEW_KEEP = 8
 # one 40-neuron view's registration from 18 to 63 ms, its panel call from 86 to 125 ms. No
 # corpus worm is this short (SF's shortest: 0.52 of an atlas without SF): none changes.
 SHORT_VIEW = 0.5
+_EM_BUDGET = 2**24  # elements (64 MB in single precision) of one (starts, N, K) array of EM
 # A test whose neurons spread further along the body axis than HEAD_WINDOW times the reference's
 # length (5-95 % of its body axis, at the reference's scale) is cut to its head first
 # (head_window). The corpus's heads spread over 1.3-1.7 times the atlas's length, NP's over
@@ -139,7 +140,9 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         shifts = shifts_of(canon)
     keep = keep if len(shifts) == 1 else PARTIAL_VIEW_KEEP * keep
     if partial and _extent(canon[:, 0]) < SHORT_VIEW * _extent(mixture.mean[:, 0]):
-        keep = len(_START_ROTATIONS) * len(shifts)  # every start: see SHORT_VIEW
+        # every start (see SHORT_VIEW), as far as EM's (starts, N, K) arrays stay within budget
+        fits = _EM_BUDGET // (len(chiralities) * len(canon) * len(mixture.mean))
+        keep = max(keep, min(len(_START_ROTATIONS) // 2 * len(shifts), fits))
     # The scores of every start are (starts, N, K) exponentials: single precision halves their
     # cost and changes a log-likelihood per neuron by ~1e-6.
     f32 = np.float32
