@@ -128,7 +128,10 @@ TRANSFORMS = {
     "+20 over 30 µm of body": with_body(20, 30),
     "+40 over 60 µm of body": with_body(40, 60),
     "+120 over 250 µm of body": with_body(120, 250),
-    "and tilted 30°": turned(30),  # last: each column's seed is its place here
+    "and tilted 30°": turned(30),
+    # Appended, as each column's seed is its place here: a smaller (younger) worm than the corpus's.
+    "× 0.75": scaled((0.75, 0.75, 0.75)),
+    "× 0.6": scaled((0.6, 0.6, 0.6)),
 }
 
 
