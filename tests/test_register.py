@@ -330,16 +330,74 @@ def test_the_scale_bound_holds_for_the_whole_fit():
     from dataclasses import replace
 
     from napari_fdlc.geometry import canonical_frame
+    from napari_fdlc.register import PARTIAL_VIEW_SIZES, smaller_worm_factor
     from napari_fdlc.table import NeuronTable
 
     atlas = load_atlas()
     mixture = replace(atlas.mixture(), z_scale_range=(1.0, 1.0))
     rng = np.random.default_rng(8)
     worm = atlas_worm(atlas, rng)
-    low, high = (mixture.partial_view_scale * b for b in mixture.scale_range)
     for size in (0.5, 2.0):
         test = NeuronTable(worm.xyz * size, worm.colours, worm.labels)
-        placed = register(test, mixture, chiralities=(False,))[0].xyz
+        placement = register(test, mixture, chiralities=(False,))[0]
+        # expected: the size of a median corpus worm (more for a table denser than a head), and
+        # for a partial view each of PARTIAL_VIEW_SIZES times it
+        sizes = PARTIAL_VIEW_SIZES if placement.partial_view else (1.0,)
+        expected = mixture.partial_view_scale * smaller_worm_factor(test.xyz)
+        low, high = expected * min(sizes) * mixture.scale_range[0], expected * max(sizes) * mixture.scale_range[1]
+        placed = placement.xyz
         canon = canonical_frame(test.xyz)[0]
         scale = np.sqrt(((placed - placed.mean(0)) ** 2).sum() / ((canon - canon.mean(0)) ** 2).sum())
         assert low - 1e-4 <= scale <= high + 1e-4, (size, scale, low, high)
+
+
+def _placement_error(table, atlas, mirrored: bool) -> float:
+    """Median distance (µm) from each named neuron of ``table`` placed on ``atlas`` in the
+    handedness ``mirrored`` to its name's mean there."""
+    index = {n: i for i, n in enumerate(atlas.names)}
+    placed = register(table, atlas.mixture(), chiralities=(mirrored,))[0].xyz
+    named = np.flatnonzero(np.isin(table.labels, atlas.names))
+    return float(np.median(np.linalg.norm(placed[named] - atlas.mean[[index[n] for n in table.labels[named]]], axis=1)))
+
+
+def test_a_smaller_complete_head_is_placed_as_at_full_size(corpus_path):
+    """NP's heads (every head neuron) shrunk to 0.75 and 0.6 of their size are placed on an
+    atlas without NP within 1.5 µm of where they are at full size (5.7-6.4 µm from their names'
+    means; shrunk: 6.0-7.3): their neurons lie closer together than a young adult's
+    (smaller_worm_factor). Registered at a young adult's size instead, they landed 8-20 µm off."""
+    from dataclasses import replace
+
+    from napari_fdlc.corpus import load_corpus
+    from napari_fdlc.evaluate import mirrored_relative_to
+    from napari_fdlc.reference import build_atlas
+    from napari_fdlc.register import smaller_worm_factor
+
+    worms = load_corpus(corpus_path)
+    assert all(smaller_worm_factor(w.table.xyz) == 1.0 for w in worms)  # no corpus worm is that dense
+    atlas = build_atlas([w for w in worms if w.lab != "NP"])
+    for worm in [w.table for w in worms if w.lab == "NP"][:4]:
+        mirrored = mirrored_relative_to(atlas, worm)
+        full = _placement_error(worm, atlas, mirrored)
+        for size in (0.75, 0.6):
+            assert _placement_error(replace(worm, xyz=worm.xyz * size), atlas, mirrored) < full + 1.5, (worm.source, size)
+
+
+def test_a_partial_view_of_a_smaller_worm_is_placed_on_its_names(corpus_path):
+    """SF's recordings (part of a head, sparsely named) shrunk to 0.75 and 0.6 of their size
+    are placed on their names' means by an atlas without SF about as often as at full size: a
+    partial view also starts at PARTIAL_VIEW_SIZES. From the size of a median corpus worm
+    alone, EM kept to a smaller scale and a wrong part of the head: 12 / 8 / 4 of the first 12
+    placed within 4 µm at 1 / 0.75 / 0.6 (now 12 / 10 / 12)."""
+    from dataclasses import replace
+
+    from napari_fdlc.corpus import load_corpus
+    from napari_fdlc.evaluate import mirrored_relative_to
+    from napari_fdlc.reference import build_atlas
+
+    worms = load_corpus(corpus_path)
+    atlas = build_atlas([w for w in worms if w.lab != "SF"])
+    tests = [w.table for w in worms if w.lab == "SF"][:12]
+    for size in (1.0, 0.75, 0.6):
+        placed_right = sum(_placement_error(replace(t, xyz=t.xyz * size), atlas, mirrored_relative_to(atlas, t)) < 4.0
+                           for t in tests)
+        assert placed_right >= 10, (size, placed_right)

@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .colour import IDENTITY_CHANNELS, normal_scores
 from .geometry import canonical_frame
@@ -37,7 +38,7 @@ _COLOUR_VAR = 0.15  # added to each component's colour variance (normal-score un
 _TEMPLATE_COLOUR_SD = 0.4  # one worm's colour against another's, same neuron
 _MIN_SHIFT_UM = 2.0  # below this, the starts' own EM steps cover the offset
 # A partial view keeps this many times ``keep`` starts (of 24 poses × 5 offsets per
-# chirality). EM from fewer missed the pose its names give on 4 of SF's 36 worms although
+# chirality, at each of PARTIAL_VIEW_SIZES). EM from fewer missed the pose its names give on 4 of SF's 36 worms although
 # that pose is the likelier one (a search failure, not the likelihood's): 2× kept, 3 of them
 # were named at 0-9 %. 8× (24 starts): the panel on SF, held out, the handedness given, 67.4
 # -> 70.6 % (2× / 4× / 8× / 12× / 16×: 67.4 / 69.2 / 70.6 / 71.3 / 71.5) for 7 ms more per
@@ -53,6 +54,16 @@ PARTIAL_VIEW_KEEP = 8
 # one 40-neuron view's registration from 18 to 63 ms, its panel call from 86 to 125 ms. No
 # corpus worm is this short (SF's shortest: 0.52 of an atlas without SF): none changes.
 SHORT_VIEW = 0.5
+# A partial view also starts at larger sizes than a median corpus worm's (its extent cannot
+# tell part of a big head from more of a small one; sparse tables cannot show their size by
+# their spacing, see YOUNG_ADULT_SPACING_UM), each with the scale bound around it; the kept
+# starts are chosen among all. From 1 alone, SF's recordings shrunk to 0.75 / 0.6 were placed on
+# their names 8 / 4 times of 12 (an atlas without SF) and named at 60.9 / 23.9 % (shipped
+# model): EM kept to too small a scale, where a wrong part of the head fits, although the pose
+# the names give is the likelier one. With 1.4: 71.7 / 72.0 % (1.3: 71.9 / 65.7; 1, 1.3, 1.6:
+# 71.8 / 72.6), SF as it is 71.5 either way; every corpus answer of accuracy.md the same. It
+# costs a partial view about 1.3x its registration (SF 49 -> 63 ms, its panel call 1.1x).
+PARTIAL_VIEW_SIZES = (1.0, 1.4)
 _EM_BUDGET = 2**24  # elements (64 MB in single precision) of one (starts, N, K) array of EM
 # A test whose neurons spread further along the body axis than HEAD_WINDOW times the reference's
 # length (5-95 % of its body axis, at the reference's scale) is cut to its head first
@@ -60,6 +71,18 @@ _EM_BUDGET = 2**24  # elements (64 MB in single precision) of one (starts, N, K)
 # 1.7-2.1 (they reach into the ventral cord).
 HEAD_WINDOW = 1.8
 HEAD_WINDOW_STEP_UM = 10.0  # at the reference's scale
+# A table whose neurons lie closer together than a complete young adult's head is a smaller
+# worm: the median distance from a neuron to its second-nearest one is 3.49-3.88 µm in NP's
+# heads (189-195 neurons, every head neuron; 4.0-7.0 in the other labs' sparser tables), and
+# sparser annotation, dropped neurons or part of a head only make it longer. Against the atlas
+# such a table is taken up to this spacing first: the registration's starts and scale bounds
+# are at a young adult's size, and from NP's heads shrunk to 0.75 EM placed them 8-20 µm from
+# their names (5.4-6.5 at full size). The panel on NP's heads shrunk to 0.75 / 0.6: 64.4 / 26.6
+# -> 79.8 / 79.8 % (as they are: 80.3), EY's at 0.6 76.3 -> 80.8 (shipped model, panel without
+# the lab; benchmarks/robustness.py). No corpus table is that dense (20 % spurious points 3-8
+# µm from NP's neurons: 3.33 at least). The second neighbour, not the first: a nucleus split
+# in two by a segmentation is one close pair.
+YOUNG_ADULT_SPACING_UM = 3.4
 _OUTLIER_LOG_DENSITY = -15.0  # per point: a neuron the reference lacks (-7 fitted closer but scored worse)
 _EXP_FLOOR = -80.0  # log-densities relative to their bound are exponentiated from here (_log_likelihood)
 
@@ -120,10 +143,14 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     not; default proper first, then mirrored): the ``keep`` best of the starting poses by
     likelihood, ``iterations`` EM steps each, the most likely result per chirality — or, with
     ``every_start``, every start's result (``keep`` per chirality) for the caller to choose.
-    With ``mixture.partial_views``, a test that covers less of the body than the reference
-    starts at ``mixture.partial_view_scale`` and at several offsets along the body axis
-    (:func:`partial_view_shifts`), and PARTIAL_VIEW_KEEP times as many starts are kept."""
+    With ``mixture.partial_views`` (the atlas), a table denser than a young adult's head is
+    first taken up to its size (:func:`smaller_worm_factor`), and a test that covers less of the
+    body than the reference starts at ``mixture.partial_view_scale`` times each of
+    PARTIAL_VIEW_SIZES and at several offsets along the body axis (:func:`partial_view_shifts`),
+    and PARTIAL_VIEW_KEEP times as many starts are kept."""
     canon, _, frame = canonical_frame(test.xyz)
+    if mixture.partial_views:
+        canon = canon * smaller_worm_factor(test.xyz)
     # The optical axis in the canonical frame: z itself, unless a tilted worm was levelled.
     # The stretch acts along it (what differs between labs is the z step's calibration).
     optical = frame[:, 2].astype(np.float32)
@@ -133,16 +160,18 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
             return (0.0,)
         return partial_view_shifts(points[:, 0], mixture.mean[:, 0], mixture.scale_range[0])
 
-    shifts = shifts_of(canon)
-    partial = len(shifts) > 1
-    if partial:  # a partial view: start at the scale it has against the reference
+    partial = len(shifts_of(canon)) > 1
+    sizes = (1.0,)
+    if partial:  # a partial view: start at the scale it has against the reference, and larger
         canon = canon * mixture.partial_view_scale
-        shifts = shifts_of(canon)
-    keep = keep if len(shifts) == 1 else PARTIAL_VIEW_KEEP * keep
+        sizes = PARTIAL_VIEW_SIZES
+    # Each start block: one size and one offset along the body axis
+    blocks = [(size, dx) for size in sizes for dx in shifts_of(canon * size)]
+    keep = PARTIAL_VIEW_KEEP * keep if partial else keep
     if partial and _extent(canon[:, 0]) < SHORT_VIEW * _extent(mixture.mean[:, 0]):
         # every start (see SHORT_VIEW), as far as EM's (starts, N, K) arrays stay within budget
         fits = _EM_BUDGET // (len(chiralities) * len(canon) * len(mixture.mean))
-        keep = max(keep, min(len(_START_ROTATIONS) // 2 * len(shifts), fits))
+        keep = max(keep, min(len(_START_ROTATIONS) // 2 * len(blocks), fits))
     # The scores of every start are (starts, N, K) exponentials: single precision halves their
     # cost and changes a log-likelihood per neuron by ~1e-6.
     f32 = np.float32
@@ -157,10 +186,11 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         return _log_likelihood(comp, shift, responsibilities)
 
     tried = np.isin(_START_MIRRORED, chiralities)
-    mirrored = np.tile(_START_MIRRORED[tried], len(shifts))
-    rotations = np.tile(_START_ROTATIONS[tried].astype(f32), (len(shifts), 1, 1))
+    mirrored = np.tile(_START_MIRRORED[tried], len(blocks))
+    rotations = np.tile(_START_ROTATIONS[tried].astype(f32), (len(blocks), 1, 1))
+    start_size = np.repeat(np.array([size for size, _ in blocks], f32), tried.sum())
     turned = np.einsum("kij,nj->kni", _START_ROTATIONS[tried].astype(f32), canon)
-    offsets = [turned + np.array([dx, 0.0, 0.0], f32) for dx in shifts]
+    offsets = [size * turned + np.array([dx, 0.0, 0.0], f32) for size, dx in blocks]
     starts = np.concatenate(offsets)
     # one offset at a time: the (starts, N, K) scores of every offset at once would take 100+ MB
     coarse = np.concatenate([log_likelihood(log_components(o)).sum(axis=-1) for o in offsets])
@@ -168,17 +198,17 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     points = starts[chosen]  # EM from every kept start at once: (S, N, 3)
     stretchable = mixture.z_scale_range != (1.0, 1.0)
     if stretchable:  # points = (canon stretched along the optical axis by stretch) @ linear + shift
-        linear = np.transpose(rotations[chosen], (0, 2, 1))
+        linear = start_size[chosen, None, None] * np.transpose(rotations[chosen], (0, 2, 1))
         stretch = np.ones(len(chosen), f32)
         canon_z = canon @ optical
     # The scale is bounded in total, relative to the size the test is expected to have in the
-    # reference's frame (the starts of a partial view are at that size, a whole head's are in
-    # µm). Each EM step's similarity is biased toward shrinking (its targets are posterior
+    # reference's frame (the starts of a partial view are at that size times their own, a whole
+    # head's are in µm). Each EM step's similarity is biased toward shrinking (its targets are posterior
     # means, pulled toward the middle by diffuse responsibilities), and a bound per step let
     # the steps compound: NP's heads ended at 0.64 of the scale their names give.
-    expected = 1.0 if partial else mixture.partial_view_scale
+    expected = start_size[chosen] if partial else mixture.partial_view_scale
     low, high = (expected * bound for bound in mixture.scale_range)
-    total_scale = np.ones(len(chosen), f32)
+    total_scale = start_size[chosen] if partial else np.ones(len(chosen), f32)
     for _ in range(iterations):
         resp = log_likelihood(log_components(points), responsibilities=True)[1]
         weight = resp.sum(axis=-1)
@@ -280,7 +310,7 @@ def head_window(test: NeuronTable, mixture: Mixture, use_colour: bool = True) ->
     (VB3, VA2, DA1, ...) that an atlas without NP does not name, and place the rest better."""
     if not mixture.partial_views:
         return None
-    x = canonical_frame(test.xyz)[0][:, 0] * mixture.partial_view_scale
+    x = canonical_frame(test.xyz)[0][:, 0] * mixture.partial_view_scale * smaller_worm_factor(test.xyz)
     length = HEAD_WINDOW * _extent(mixture.mean[:, 0])
     if np.ptp(x) <= length:
         return None
@@ -294,6 +324,15 @@ def head_window(test: NeuronTable, mixture: Mixture, use_colour: bool = True) ->
         if gain > best_gain:
             best, best_gain = rows, gain
     return best
+
+
+def smaller_worm_factor(xyz: np.ndarray) -> float:
+    """How much ``xyz`` must grow for its neurons to lie no closer together than in a complete
+    young adult's head (YOUNG_ADULT_SPACING_UM); 1 for a table no denser than that."""
+    if len(xyz) < 3:
+        return 1.0
+    spacing = float(np.median(cKDTree(xyz).query(xyz, k=3)[0][:, 2]))
+    return max(1.0, YOUNG_ADULT_SPACING_UM / spacing) if spacing > 0 else 1.0
 
 
 def _extent(x: np.ndarray) -> float:
