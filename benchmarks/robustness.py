@@ -132,6 +132,9 @@ TRANSFORMS = {
     # Appended, as each column's seed is its place here: a smaller (younger) worm than the corpus's.
     "× 0.75": scaled((0.75, 0.75, 0.75)),
     "× 0.6": scaled((0.6, 0.6, 0.6)),
+    # and a bigger one (an older adult's head, or a magnification the table got wrong)
+    "× 1.25": scaled((1.25, 1.25, 1.25)),
+    "× 1.5": scaled((1.5, 1.5, 1.5)),
 }
 
 
