@@ -176,6 +176,23 @@ def test_a_test_without_colour_is_said_to_be_named_by_position(tmp_path, table_f
     assert capsys.readouterr().err == ""
 
 
+def test_a_worm_smaller_than_a_young_adult_is_said_to_be_named_so(tmp_path, untrained_weights, worm, capsys):
+    """The panel takes a table denser than a complete head up to a young adult's size
+    (register.smaller_worm_factor) and says so, once; a worm of a young adult's size is not."""
+    from napari_fdlc.register import smaller_worm_factor
+
+    small = tmp_path / "small.csv"
+    write_table(NeuronTable(worm.xyz * 0.5, worm.colours, source="small.csv"), small)
+    assert smaller_worm_factor(worm.xyz) == 1.0 < smaller_worm_factor(worm.xyz * 0.5)
+    assert run("label", small, "--weights", untrained_weights, "--out", tmp_path / "o.csv") == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "small.csv: its neurons lie closer" in err[0] and "smaller worm" in err[0], err
+    full = tmp_path / "full.csv"
+    write_table(NeuronTable(worm.xyz, worm.colours, source="full.csv"), full)
+    assert run("label", full, "--weights", untrained_weights, "--out", tmp_path / "p.csv") == 0
+    assert "smaller worm" not in capsys.readouterr().err
+
+
 def test_simulate_writes_known_correspondence(tmp_path, table_files):
     test, _ = table_files
     assert run("simulate", test, "--count", "2", "--seed", "1", "--out", tmp_path / "syn") == 0

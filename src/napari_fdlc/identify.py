@@ -34,7 +34,7 @@ from .errors import FdlcError, ModelError, warn
 from .geometry import (CHIRALITIES, apply_affine, canonical_frame, compose_affine, fit_affine, fit_warp,
                        mirrored_by_names, position_evidence)
 from .match import Labelling, assign_log, make_labelling, name_probabilities
-from .register import Placement, head_window, posterior, register, template_mixture
+from .register import Placement, head_window, posterior, register, smaller_worm_factor, template_mixture
 from .table import NeuronTable
 
 if TYPE_CHECKING:
@@ -705,9 +705,15 @@ class Identifier:
         use_colour = self._check(test, panel.templates, use_colour)
         window = head_window(test, panel.atlas.mixture(), use_colour)
         if window is None:
-            return self._label_panel(test, panel, use_colour, fixed)
-        part_fixed = {k: fixed[row] for k, row in enumerate(window.tolist()) if row in (fixed or {})}
-        return _widened(self._label_panel(test.subset(window), panel, use_colour, part_fixed or None), window, len(test), fixed)
+            result = self._label_panel(test, panel, use_colour, fixed)
+        else:
+            part_fixed = {k: fixed[row] for k, row in enumerate(window.tolist()) if row in (fixed or {})}
+            result = _widened(self._label_panel(test.subset(window), panel, use_colour, part_fixed or None), window,
+                              len(test), fixed)
+        taken_up = smaller_worm_factor(test.xyz)
+        if taken_up > 1.0:  # registered as a smaller worm (napari_fdlc.register.YOUNG_ADULT_SPACING_UM)
+            result.info["smaller_worm"] = taken_up
+        return result
 
     def _label_panel(self, test: NeuronTable, panel: Panel, use_colour: bool, fixed: dict[int, str] | None) -> Labelling:
         """:meth:`label_panel` for a test of a head's extent, colour checked."""
@@ -835,6 +841,16 @@ def colour_note(test: NeuronTable, references: list[NeuronTable], use_colour: bo
     if any(c in test.colours for c in colour_model.IDENTITY_CHANNELS):
         return f"{test.source}: no colour channel in common with the template(s): identifying by position only"
     return f"{test.source}: no colour column (R, G, B): identifying by position only (--no-color says it is meant)"
+
+
+def smaller_worm_note(test: NeuronTable, result: Labelling) -> str | None:
+    """The line to say when the panel named ``test`` as a smaller worm than a young adult
+    (its neurons lie closer together than in a complete head), else None."""
+    taken_up = result.info.get("smaller_worm")
+    if not taken_up:
+        return None
+    return (f"{test.source}: its neurons lie closer together than in a young adult's head, so it is named as a "
+            f"smaller worm (its positions taken {taken_up:.2f}x larger); if it is not, check that x_um, y_um, z_um are µm")
 
 
 def can_adapt_colours(tests: list[NeuronTable], use_colour: bool = True) -> bool:

@@ -16,7 +16,7 @@ import pandas as pd
 
 from .errors import FdlcError, warn
 from .identify import (ADAPT_MIN_TESTS, FEW_NEURONS, Identifier, can_adapt_colours, colour_note, default_identifier,
-                       harmonise, label_neurons)
+                       harmonise, label_neurons, smaller_worm_note)
 from .match import Labelling, make_labelling, name_probabilities
 from .table import COORDS, NeuronTable, implausible_scale, read_table, write_table
 
@@ -151,6 +151,9 @@ def label_files(
     else:
         results = [cpd_labelling(t, template_tables, use_colour) for t in test_tables]
     for test, result, path in zip(test_tables, results, paths):
+        note = smaller_worm_note(test, result)
+        if note:
+            warn(note)
         kept = result.info.get("head_window")
         if kept is not None:
             warn(f"{test.source}: {len(test) - kept} neuron(s) lie beyond the head (the view reaches into the body): "

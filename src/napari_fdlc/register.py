@@ -326,13 +326,18 @@ def head_window(test: NeuronTable, mixture: Mixture, use_colour: bool = True) ->
     return best
 
 
+def neuron_spacing(xyz: np.ndarray) -> float | None:
+    """The median distance (µm) from a neuron to its second-nearest one (None under 3 neurons)."""
+    if len(xyz) < 3:
+        return None
+    return float(np.median(cKDTree(xyz).query(xyz, k=3)[0][:, 2]))
+
+
 def smaller_worm_factor(xyz: np.ndarray) -> float:
     """How much ``xyz`` must grow for its neurons to lie no closer together than in a complete
     young adult's head (YOUNG_ADULT_SPACING_UM); 1 for a table no denser than that."""
-    if len(xyz) < 3:
-        return 1.0
-    spacing = float(np.median(cKDTree(xyz).query(xyz, k=3)[0][:, 2]))
-    return max(1.0, YOUNG_ADULT_SPACING_UM / spacing) if spacing > 0 else 1.0
+    spacing = neuron_spacing(xyz)
+    return max(1.0, YOUNG_ADULT_SPACING_UM / spacing) if spacing else 1.0
 
 
 def _extent(x: np.ndarray) -> float:

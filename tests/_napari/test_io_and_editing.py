@@ -271,6 +271,18 @@ def test_left_right_names_that_mirror_the_worm_suggest_setting_the_handedness(ma
     assert widget._handedness_hint(mirrored, {3: "AVAL"}, "my_template", "auto") is None  # not the atlas
 
 
+def test_auto_label_says_what_the_panel_did_with_the_neurons():
+    from types import SimpleNamespace
+
+    from napari_fdlc._napari._widget import AutoLabelWidget
+
+    message = AutoLabelWidget._done_message
+    assert message(150, SimpleNamespace(info={})) == "done: 150 neurons"
+    assert message(150, SimpleNamespace(info={"head_window": 140})) == "done: 150 neurons; 10 beyond the head get no name"
+    assert "smaller worm" in message(150, SimpleNamespace(info={"smaller_worm": 1.31}))
+    assert "×1.31" in message(150, SimpleNamespace(info={"smaller_worm": 1.31}))
+
+
 def test_templates_of_another_handedness_are_mirrored_back_with_a_warning(make_napari_viewer, templates, monkeypatch):
     from napari_fdlc.table import NeuronTable
 

@@ -748,8 +748,7 @@ class AutoLabelWidget(QWidget):
                     # decisions made while the job ran are kept too
                     carried = {**carried, **carry_decisions(self.session, table.xyz)}
                 self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name)
-            beyond = len(table) - labelling.info.get("head_window", len(table))
-            self._status(f"done: {len(table)} neurons" + (f"; {beyond} beyond the head get no name" if beyond else ""))
+            self._status(self._done_message(len(table), labelling))
 
         self._stack = stack if stack is not None else self._stack
         return self._start(work, done, wait, "auto-label")
@@ -789,6 +788,14 @@ class AutoLabelWidget(QWidget):
                 self._notify_info(hint)
 
         return self._start(work, done, wait, "re-label")
+
+    @staticmethod
+    def _done_message(neurons: int, labelling) -> str:
+        """What Auto-label says when it is done: the neurons, and what the panel did with them."""
+        beyond = neurons - labelling.info.get("head_window", neurons)
+        taken_up = labelling.info.get("smaller_worm")
+        return (f"done: {neurons} neurons" + (f"; {beyond} beyond the head get no name" if beyond else "")
+                + (f"; named as a smaller worm than a young adult (positions ×{taken_up:.2f})" if taken_up else ""))
 
     def _handedness_hint(self, labelling, fixed: dict[int, str], template_text: str, chirality: str) -> str | None:
         """A hint when the user's left/right names placed the worm mirrored relative to the
