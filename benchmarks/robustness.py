@@ -1,6 +1,7 @@
 """How the panel's names hold up when a lab's tables differ from the corpus's in the ways labs differ.
 
     python benchmarks/robustness.py [--runs runs | --shipped] [--labs NP EY KK SF SK1] [--worms 12] [--only COLUMN ...]
+                                    [--protocol panel | pairs]
 
 Another lab's annotated worms reach ``fdlc label`` in tables that differ from the corpus's: a
 z step calibrated differently, bigger or smaller worms, a field of view cut elsewhere,
@@ -13,6 +14,9 @@ majority handedness (``--chirality`` as a user sets it for the microscope), each
 and transformed (seed 0). Top-1 % over the named neurons that are left and that the panel
 knows (a dropped neuron is not scored; an added one has no name). Prints a markdown table.
 ``--shipped`` names them with the shipped model instead (which saw every lab: not held out).
+``--protocol pairs``: each test is named against the next worm of its lab as it is (the
+template), on ``auto`` and with the atlas without the lab beside it, as ``fdlc label
+--template`` does; top-1 over the names the template has.
 """
 
 from __future__ import annotations
@@ -148,6 +152,8 @@ def main(argv=None) -> int:
                     help="the shipped model instead of the fold models (it saw every lab: not held out; the panel is "
                          "still rebuilt without the lab): for what inference does with a changed table")
     ap.add_argument("--only", nargs="+", metavar="COLUMN", choices=list(TRANSFORMS), help="these columns only")
+    ap.add_argument("--protocol", choices=("panel", "pairs"), default="panel",
+                    help="the built-in panel (default), or the next worm of the lab as the template")
     args = ap.parse_args(argv)
     worms = load_corpus(args.corpus)
     chosen = [(k, name) for k, name in enumerate(TRANSFORMS) if not args.only or name in args.only]
@@ -159,9 +165,14 @@ def main(argv=None) -> int:
             transform = TRANSFORMS[name]
             rng = np.random.default_rng(k)
             scores = Scores()
-            for test in tests:
+            for k, test in enumerate(tests):
                 changed = transform(test, rng)
-                scores.add(identifier.label_panel(changed, panel, use_colour=True), changed, panel.names)
+                if args.protocol == "panel":
+                    scores.add(identifier.label_panel(changed, panel, use_colour=True), changed, panel.names)
+                else:
+                    template = tests[(k + 1) % len(tests)]
+                    named = identifier.with_chirality("auto").label(changed, [template], atlas=panel.atlas)
+                    scores.add(named, changed, set(template.names))
             cells.append(f"{100 * scores.summary()['top1']:.1f}")
         lines.append(f"| {lab} | " + " | ".join(cells) + " |")
         print(lines[-1], file=sys.stderr, flush=True)

@@ -456,6 +456,32 @@ def test_the_atlas_worm_answer_is_averaged_with_the_template_at_its_weight(ident
     assert np.abs(worm_only - alone).max() > 0.05
 
 
+def test_beside_a_template_a_view_into_the_body_is_named_in_its_head_only(worm, other_worm):
+    """With a template and the atlas beside it, a head and 250 µm of body behind it is named in
+    its head window, as the panel does (registered whole beside the next worm of its lab:
+    0-48 % top-1 on corpus heads, robustness.py --protocol pairs); a fixed name stays. A
+    template that itself reaches as far into the body keeps the test whole."""
+    from napari_fdlc.identify import default_identifier
+    from napari_fdlc.reference import load_atlas
+
+    from test_register import _with_body
+
+    identifier, atlas = default_identifier().with_chirality("same"), load_atlas()
+    wider = _with_body(worm, 120, 250, np.random.default_rng(0))
+    alone = identifier.label(worm, [other_worm], atlas=atlas)
+    assert "head_window" not in alone.info
+    fixed = {len(wider) - 1: "VB1"}
+    result = identifier.label(wider, [other_worm], fixed=fixed, atlas=atlas)
+    rows = result.info["head_window"]
+    assert len(worm) * 0.9 < rows < len(wider)
+    right = np.mean(np.array(result.auto_id[: len(worm)]) == worm.labels)
+    assert right > np.mean(np.array(alone.auto_id) == worm.labels) - 0.15 and right > 0.4
+    assert result.auto_id[len(wider) - 1] == "VB1"
+    assert "head_window" not in identifier.label(wider, [other_worm]).info  # no atlas: no window
+    long_template = _with_body(other_worm, 120, 250, np.random.default_rng(1))
+    assert "head_window" not in identifier.label(wider, [long_template], atlas=atlas).info
+
+
 def test_a_view_into_the_body_is_named_in_its_head_only(worm):
     """With the panel, a head and 250 µm of body behind it is named nearly as well as the head
     alone (registered whole: 0-13 % top-1 on corpus heads, robustness.py); the neurons outside

@@ -52,6 +52,22 @@ def test_registration_onto_a_template_keeps_its_scale():
         assert np.median(error) < 1.0, (roll, mirrored, np.median(error))
 
 
+def test_a_smaller_worm_is_taken_to_a_templates_size():
+    """Onto a template (scale kept: both in µm), a test whose neurons lie closer together than
+    a complete head's is first taken up (smaller_worm_factor): a copy of a template as dense as
+    a young adult's head, shrunk to 0.7 (and noisy), lands on it neuron for neuron."""
+    from napari_fdlc.register import YOUNG_ADULT_SPACING_UM, neuron_spacing
+    from napari_fdlc.table import NeuronTable
+
+    rng = np.random.default_rng(3)
+    worm = atlas_worm(load_atlas(), rng)
+    dense = NeuronTable(worm.xyz * YOUNG_ADULT_SPACING_UM / neuron_spacing(worm.xyz), worm.colours, worm.labels)
+    mixture = template_mixture(dense)
+    small = _posed(NeuronTable(dense.xyz * 0.7, dense.colours, dense.labels), 40, False, rng)
+    error = np.linalg.norm(register(small, mixture, chiralities=(False,))[0].xyz - mixture.mean, axis=1)
+    assert np.median(error) < 1.5, np.median(error)  # without: 4.1 µm
+
+
 def test_every_start_gives_each_kept_pose_and_the_default_is_the_likeliest():
     rng = np.random.default_rng(4)
     worm = atlas_worm(load_atlas(), rng)

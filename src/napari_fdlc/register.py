@@ -115,6 +115,8 @@ class Mixture:
     # similarity: labs differ in apparent z scale (refractive-index mismatch between immersion
     # and sample, z-step calibration). (1, 1): none.
     z_scale_range: tuple[float, float] = (1.0, 1.0)
+    # A template's smaller_worm_factor (1 for the atlas): a test is taken to its size.
+    size_factor: float = 1.0
 
 
 @dataclass
@@ -134,7 +136,8 @@ def template_mixture(template: NeuronTable) -> Mixture:
     if all(c in template.colours for c in IDENTITY_CHANNELS):
         colour = normal_scores(template, IDENTITY_CHANNELS)
         colour_var = np.full_like(colour, _TEMPLATE_COLOUR_SD**2)
-    return Mixture(mean, np.full_like(mean, TEMPLATE_SD**2), np.zeros(len(mean)), colour, colour_var)
+    return Mixture(mean, np.full_like(mean, TEMPLATE_SD**2), np.zeros(len(mean)), colour, colour_var,
+                   size_factor=smaller_worm_factor(template.xyz))
 
 
 def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, iterations: int = 6, keep: int = 3,
@@ -151,6 +154,8 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     canon, _, frame = canonical_frame(test.xyz)
     if mixture.partial_views:
         canon = canon * smaller_worm_factor(test.xyz)
+    else:  # a template, in µm like the test: a smaller worm than the other is taken to its size
+        canon = canon * (smaller_worm_factor(test.xyz) / mixture.size_factor)
     # The optical axis in the canonical frame: z itself, unless a tilted worm was levelled.
     # The stretch acts along it (what differs between labs is the z step's calibration).
     optical = frame[:, 2].astype(np.float32)
@@ -298,22 +303,21 @@ def _log_likelihood(comp: np.ndarray, shift: float, responsibilities: bool = Fal
     return log_likelihood, share
 
 
-def head_window(test: NeuronTable, mixture: Mixture, use_colour: bool = True) -> np.ndarray | None:
+def head_window(test: NeuronTable, mixture: Mixture, use_colour: bool = True,
+                reach: float = HEAD_WINDOW) -> np.ndarray | None:
     """The rows of ``test`` that lie in its head, when its neurons spread further along the body
-    axis than a head's (more than HEAD_WINDOW times the reference's length; None otherwise, and
-    for a reference without ``partial_views``, i.e. a template). A window that long slides along
+    axis than a head's (more than ``reach`` times the reference's length, :func:`body_reach`;
+    None otherwise, and for a reference without ``partial_views``, i.e. a template). A window that long slides along
     the test's body axis; each window is registered and the one the reference explains best
     wins (the summed log-likelihood of its neurons above the outlier class's). Registered whole,
     a head with 40 neurons more over 60 µm of body was placed 12-14 µm from its names' atlas
     positions (5-7 µm for the head alone) and the panel's top-1 fell from 75 to 40 % (NP; 120
     over 250 µm: 13 %); benchmarks/robustness.py. NP's own heads lose 2-5 ventral-cord neurons
     (VB3, VA2, DA1, ...) that an atlas without NP does not name, and place the rest better."""
-    if not mixture.partial_views:
+    if not mixture.partial_views or body_reach(test, mixture) <= reach:
         return None
-    x = canonical_frame(test.xyz)[0][:, 0] * mixture.partial_view_scale * smaller_worm_factor(test.xyz)
-    length = HEAD_WINDOW * _extent(mixture.mean[:, 0])
-    if np.ptp(x) <= length:
-        return None
+    x = _body_axis(test, mixture)
+    length = reach * _extent(mixture.mean[:, 0])
     best, best_gain = None, -np.inf
     for low in np.arange(x.min(), x.max() - length + HEAD_WINDOW_STEP_UM, HEAD_WINDOW_STEP_UM):
         rows = np.flatnonzero((x >= low) & (x <= low + length))
@@ -324,6 +328,17 @@ def head_window(test: NeuronTable, mixture: Mixture, use_colour: bool = True) ->
         if gain > best_gain:
             best, best_gain = rows, gain
     return best
+
+
+def body_reach(table: NeuronTable, mixture: Mixture) -> float:
+    """How far ``table``'s neurons spread along its body axis, in lengths of the reference (the
+    atlas: 5-95 % of its names' means along the body), at the size it is expected to have there."""
+    return float(np.ptp(_body_axis(table, mixture))) / _extent(mixture.mean[:, 0])
+
+
+def _body_axis(table: NeuronTable, mixture: Mixture) -> np.ndarray:
+    """Each neuron's place along ``table``'s body axis (µm at the reference's scale)."""
+    return canonical_frame(table.xyz)[0][:, 0] * mixture.partial_view_scale * smaller_worm_factor(table.xyz)
 
 
 def neuron_spacing(xyz: np.ndarray) -> float | None:
