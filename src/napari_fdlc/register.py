@@ -38,8 +38,8 @@ _COLOUR_VAR = 0.15  # added to each component's colour variance (normal-score un
 _TEMPLATE_COLOUR_SD = 0.4  # one worm's colour against another's, same neuron
 _MIN_SHIFT_UM = 2.0  # below this, the starts' own EM steps cover the offset
 # A partial view keeps this many times ``keep`` starts (of 24 poses × 5 offsets per
-# chirality, at each of PARTIAL_VIEW_SIZES). EM from fewer missed the pose its names give on 4 of SF's 36 worms although
-# that pose is the likelier one (a search failure, not the likelihood's): 2× kept, 3 of them
+# chirality, at each of PARTIAL_VIEW_SIZES). EM from fewer missed the pose its names give on 4
+# of SF's 36 worms although that pose is the likelier one (a search failure, not the likelihood's): 2× kept, 3 of them
 # were named at 0-9 %. 8× (24 starts): the panel on SF, held out, the handedness given, 67.4
 # -> 70.6 % (2× / 4× / 8× / 12× / 16×: 67.4 / 69.2 / 70.6 / 71.3 / 71.5) for 7 ms more per
 # registration (16×: 18 ms); benchmarks.md.
@@ -150,7 +150,8 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     first taken up to its size (:func:`smaller_worm_factor`), and a test that covers less of the
     body than the reference starts at ``mixture.partial_view_scale`` times each of
     PARTIAL_VIEW_SIZES and at several offsets along the body axis (:func:`partial_view_shifts`),
-    and PARTIAL_VIEW_KEEP times as many starts are kept."""
+    and PARTIAL_VIEW_KEEP times as many starts are kept. Onto a template (in µm like the test),
+    a test denser than a young adult's head is taken to the template's size the same way."""
     canon, _, frame = canonical_frame(test.xyz)
     if mixture.partial_views:
         canon = canon * smaller_worm_factor(test.xyz)
@@ -208,9 +209,9 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         canon_z = canon @ optical
     # The scale is bounded in total, relative to the size the test is expected to have in the
     # reference's frame (the starts of a partial view are at that size times their own, a whole
-    # head's are in µm). Each EM step's similarity is biased toward shrinking (its targets are posterior
-    # means, pulled toward the middle by diffuse responsibilities), and a bound per step let
-    # the steps compound: NP's heads ended at 0.64 of the scale their names give.
+    # head's are in µm). Each EM step's similarity is biased toward shrinking (its targets are
+    # posterior means, pulled toward the middle by diffuse responsibilities), and a bound per
+    # step let the steps compound: NP's heads ended at 0.64 of the scale their names give.
     expected = start_size[chosen] if partial else mixture.partial_view_scale
     low, high = (expected * bound for bound in mixture.scale_range)
     total_scale = start_size[chosen] if partial else np.ones(len(chosen), f32)
@@ -307,8 +308,8 @@ def head_window(test: NeuronTable, mixture: Mixture, use_colour: bool = True,
                 reach: float = HEAD_WINDOW) -> np.ndarray | None:
     """The rows of ``test`` that lie in its head, when its neurons spread further along the body
     axis than a head's (more than ``reach`` times the reference's length, :func:`body_reach`;
-    None otherwise, and for a reference without ``partial_views``, i.e. a template). A window that long slides along
-    the test's body axis; each window is registered and the one the reference explains best
+    None otherwise, and for a reference without ``partial_views``, i.e. a template). A window
+    that long slides along the test's body axis; each window is registered and the one the reference explains best
     wins (the summed log-likelihood of its neurons above the outlier class's). Registered whole,
     a head with 40 neurons more over 60 µm of body was placed 12-14 µm from its names' atlas
     positions (5-7 µm for the head alone) and the panel's top-1 fell from 75 to 40 % (NP; 120
