@@ -64,6 +64,16 @@ SHORT_VIEW = 0.5
 # 71.8 / 72.6), SF as it is 71.5 either way; every corpus answer of accuracy.md the same. It
 # costs a partial view about 1.3x its registration (SF 49 -> 63 ms, its panel call 1.1x).
 PARTIAL_VIEW_SIZES = (1.0, 1.4)
+# Onto a template (no partial-view search: between two worms of a lab it cost SK1's pairs 4.6
+# points, see Mixture.partial_views), a test shorter than this fraction of the template's
+# length (5-95 % along the body) is still started at offsets along it, at scale 1, and the
+# model chooses among the best starts of each offset and of the centred one. A view cropped to
+# 60 % of a worm's neurons, named beside the next worm of its lab: EY 62.1 -> 74.8 % top-1, KK
+# 46.0 -> 48.8, SK1 45.7 -> 43.8, NP and SF within 0.1 (benchmarks/robustness.py --protocol
+# pairs). No two corpus worms of a lab are that different (SK1's most: 0.52), so no corpus
+# answer changes; at 0.75 EY / KK / SF gained 11 / 7 / 7 points more but corpus pairs moved
+# (benchmarks.md). Without the centred starts NP's crops fell 81.0 -> 73.7 (wrong offsets).
+TEMPLATE_SHORT_VIEW = 0.5
 _EM_BUDGET = 2**24  # elements (64 MB in single precision) of one (starts, N, K) array of EM
 # A test whose neurons spread further along the body axis than HEAD_WINDOW times the reference's
 # length (5-95 % of its body axis, at the reference's scale) is cut to its head first
@@ -103,7 +113,8 @@ class Mixture:
     scale_range: tuple[float, float] = (1.0, 1.0)
     # The reference spans the whole head (the atlas) while a test may show part of it: start
     # also at offsets along the body axis (partial_view_shifts). Between two worms of a lab it
-    # cost SK1's pairs 4.6 points (their fields of view vary), so templates do not.
+    # cost SK1's pairs 4.6 points (their fields of view vary), so templates do not, unless the
+    # test is much shorter than the template (TEMPLATE_SHORT_VIEW).
     partial_views: bool = False
     # The test's size relative to the reference (µm): what scale_range bounds, and where the
     # starts of a partial view are. The atlas is smaller than real worms (Procrustes): 1 /
@@ -151,7 +162,8 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     body than the reference starts at ``mixture.partial_view_scale`` times each of
     PARTIAL_VIEW_SIZES and at several offsets along the body axis (:func:`partial_view_shifts`),
     and PARTIAL_VIEW_KEEP times as many starts are kept. Onto a template (in µm like the test),
-    a test denser than a young adult's head is taken to the template's size the same way."""
+    a test denser than a young adult's head is taken to the template's size the same way, and a
+    test shorter than TEMPLATE_SHORT_VIEW of it starts at offsets along it too."""
     canon, _, frame = canonical_frame(test.xyz)
     if mixture.partial_views:
         canon = canon * smaller_worm_factor(test.xyz)
@@ -162,19 +174,21 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     optical = frame[:, 2].astype(np.float32)
 
     def shifts_of(points):
-        if not mixture.partial_views:
-            return (0.0,)
-        return partial_view_shifts(points[:, 0], mixture.mean[:, 0], mixture.scale_range[0])
+        if mixture.partial_views:
+            return partial_view_shifts(points[:, 0], mixture.mean[:, 0], mixture.scale_range[0])
+        if _extent(points[:, 0]) < TEMPLATE_SHORT_VIEW * _extent(mixture.mean[:, 0]):
+            return partial_view_shifts(points[:, 0], mixture.mean[:, 0], 1.0)
+        return (0.0,)
 
     partial = len(shifts_of(canon)) > 1
     sizes = (1.0,)
     if partial:  # a partial view: start at the scale it has against the reference, and larger
         canon = canon * mixture.partial_view_scale
-        sizes = PARTIAL_VIEW_SIZES
+        sizes = PARTIAL_VIEW_SIZES if mixture.partial_views else (1.0,)
     # Each start block: one size and one offset along the body axis
     blocks = [(size, dx) for size in sizes for dx in shifts_of(canon * size)]
-    keep = PARTIAL_VIEW_KEEP * keep if partial else keep
-    if partial and _extent(canon[:, 0]) < SHORT_VIEW * _extent(mixture.mean[:, 0]):
+    keep = PARTIAL_VIEW_KEEP * keep if partial and mixture.partial_views else keep
+    if partial and mixture.partial_views and _extent(canon[:, 0]) < SHORT_VIEW * _extent(mixture.mean[:, 0]):
         # every start (see SHORT_VIEW), as far as EM's (starts, N, K) arrays stay within budget
         fits = _EM_BUDGET // (len(chiralities) * len(canon) * len(mixture.mean))
         keep = max(keep, min(len(_START_ROTATIONS) // 2 * len(blocks), fits))
@@ -200,7 +214,16 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     starts = np.concatenate(offsets)
     # one offset at a time: the (starts, N, K) scores of every offset at once would take 100+ MB
     coarse = np.concatenate([log_likelihood(log_components(o)).sum(axis=-1) for o in offsets])
-    chosen = np.concatenate([np.flatnonzero(mirrored == m)[np.argsort(-coarse[mirrored == m])[:keep]] for m in chiralities])
+    def best(among):
+        return np.flatnonzero(among)[np.argsort(-coarse[among])[:keep]]
+
+    chosen = np.concatenate([best(mirrored == m) for m in chiralities])
+    if partial and not mixture.partial_views:
+        # A short view onto a template keeps the best starts of its centred block too (what a
+        # whole worm gets): the model chooses among them (TEMPLATE_SHORT_VIEW).
+        centred = np.repeat([dx == 0.0 for _, dx in blocks], tried.sum())
+        chosen = np.concatenate([np.unique(np.concatenate([best((mirrored == m) & centred), best(mirrored == m)]))
+                                 for m in chiralities])
     points = starts[chosen]  # EM from every kept start at once: (S, N, 3)
     stretchable = mixture.z_scale_range != (1.0, 1.0)
     if stretchable:  # points = (canon stretched along the optical axis by stretch) @ linear + shift
