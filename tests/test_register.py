@@ -313,6 +313,15 @@ def test_corpus_heads_lose_at_most_a_few_neurons_to_the_window(corpus_path):
         assert rows is None or (worm.lab == "NP" and len(rows) >= 0.95 * len(worm.table)), worm.source
 
 
+def _placement_error(table, atlas, mirrored: bool) -> float:
+    """Median distance (µm) from each named neuron of ``table`` placed on ``atlas`` in the
+    handedness ``mirrored`` to its name's mean there."""
+    index = {n: i for i, n in enumerate(atlas.names)}
+    placed = register(table, atlas.mixture(), chiralities=(mirrored,))[0].xyz
+    named = np.flatnonzero(np.isin(table.labels, atlas.names))
+    return float(np.median(np.linalg.norm(placed[named] - atlas.mean[[index[n] for n in table.labels[named]]], axis=1)))
+
+
 def test_corpus_views_shorter_than_half_the_head_are_found_from_every_start(corpus_path):
     """SF's recordings cut to 60 % of their length (under half the atlas along the body) are
     placed on their names' means by an atlas without SF, in each worm's own handedness: 10 of
@@ -326,7 +335,7 @@ def test_corpus_views_shorter_than_half_the_head_are_found_from_every_start(corp
 
     worms = load_corpus(corpus_path)
     atlas = build_atlas([w for w in worms if w.lab != "SF"])
-    mixture, index = atlas.mixture(), {n: i for i, n in enumerate(atlas.names)}
+    mixture = atlas.mixture()
     length = _extent(mixture.mean[:, 0])
     for worm in worms:
         x = canonical_frame(worm.table.xyz)[0][:, 0] * mixture.partial_view_scale
@@ -336,10 +345,7 @@ def test_corpus_views_shorter_than_half_the_head_are_found_from_every_start(corp
         centred = worm.xyz - worm.xyz.mean(axis=0)
         along = centred @ np.linalg.svd(centred, full_matrices=False)[2][0]
         view = worm.subset(np.flatnonzero(along <= np.quantile(along, 0.6)))
-        placed = register(view, mixture, chiralities=(mirrored_relative_to(atlas, worm),))[0].xyz
-        named = np.flatnonzero(np.isin(view.labels, atlas.names))
-        names_means = atlas.mean[[index[n] for n in view.labels[named]]]
-        placed_right += np.median(np.linalg.norm(placed[named] - names_means, axis=1)) < 4.0
+        placed_right += _placement_error(view, atlas, mirrored_relative_to(atlas, worm)) < 4.0
     assert placed_right >= 8, placed_right
 
 
@@ -393,15 +399,6 @@ def test_the_scale_bound_holds_for_the_whole_fit():
         canon = canonical_frame(test.xyz)[0]
         scale = np.sqrt(((placed - placed.mean(0)) ** 2).sum() / ((canon - canon.mean(0)) ** 2).sum())
         assert low - 1e-4 <= scale <= high + 1e-4, (size, scale, low, high)
-
-
-def _placement_error(table, atlas, mirrored: bool) -> float:
-    """Median distance (µm) from each named neuron of ``table`` placed on ``atlas`` in the
-    handedness ``mirrored`` to its name's mean there."""
-    index = {n: i for i, n in enumerate(atlas.names)}
-    placed = register(table, atlas.mixture(), chiralities=(mirrored,))[0].xyz
-    named = np.flatnonzero(np.isin(table.labels, atlas.names))
-    return float(np.median(np.linalg.norm(placed[named] - atlas.mean[[index[n] for n in table.labels[named]]], axis=1)))
 
 
 def test_a_smaller_complete_head_is_placed_as_at_full_size(corpus_path):

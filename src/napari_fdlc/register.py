@@ -39,10 +39,10 @@ _TEMPLATE_COLOUR_SD = 0.4  # one worm's colour against another's, same neuron
 _MIN_SHIFT_UM = 2.0  # below this, the starts' own EM steps cover the offset
 # A partial view keeps this many times ``keep`` starts (of 24 poses × 5 offsets per
 # chirality, at each of PARTIAL_VIEW_SIZES). EM from fewer missed the pose its names give on 4
-# of SF's 36 worms although that pose is the likelier one (a search failure, not the likelihood's): 2× kept, 3 of them
-# were named at 0-9 %. 8× (24 starts): the panel on SF, held out, the handedness given, 67.4
-# -> 70.6 % (2× / 4× / 8× / 12× / 16×: 67.4 / 69.2 / 70.6 / 71.3 / 71.5) for 7 ms more per
-# registration (16×: 18 ms); benchmarks.md.
+# of SF's 36 worms although that pose is the likelier one (a search failure, not the
+# likelihood's): 2× kept, 3 of them were named at 0-9 %. 8× (24 starts): the panel on SF, held
+# out, the handedness given, 67.4 -> 70.6 % (2× / 4× / 8× / 12× / 16×: 67.4 / 69.2 / 70.6 /
+# 71.3 / 71.5) for 7 ms more per registration (16×: 18 ms); benchmarks.md.
 PARTIAL_VIEW_KEEP = 8
 # A view of less than this fraction of the reference's extent along the body (at the size it is
 # expected to have there) runs EM from every start. Such a view fits many places of the head,
@@ -165,10 +165,9 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     a test denser than a young adult's head is taken to the template's size the same way, and a
     test shorter than TEMPLATE_SHORT_VIEW of it starts at offsets along it too."""
     canon, _, frame = canonical_frame(test.xyz)
-    if mixture.partial_views:
-        canon = canon * smaller_worm_factor(test.xyz)
-    else:  # a template, in µm like the test: a smaller worm than the other is taken to its size
-        canon = canon * (smaller_worm_factor(test.xyz) / mixture.size_factor)
+    # A smaller worm than a young adult is taken up to one's size (the atlas's size_factor is 1);
+    # onto a template, to the template's own size.
+    canon = canon * (smaller_worm_factor(test.xyz) / mixture.size_factor)
     # The optical axis in the canonical frame: z itself, unless a tilted worm was levelled.
     # The stretch acts along it (what differs between labs is the z step's calibration).
     optical = frame[:, 2].astype(np.float32)
@@ -181,14 +180,15 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
         return (0.0,)
 
     partial = len(shifts_of(canon)) > 1
-    sizes = (1.0,)
-    if partial:  # a partial view: start at the scale it has against the reference, and larger
+    atlas_view = partial and mixture.partial_views  # part of the head, against the atlas
+    template_view = partial and not mixture.partial_views  # much shorter than its template
+    if partial:  # start at the scale it has against the reference
         canon = canon * mixture.partial_view_scale
-        sizes = PARTIAL_VIEW_SIZES if mixture.partial_views else (1.0,)
+    sizes = PARTIAL_VIEW_SIZES if atlas_view else (1.0,)
     # Each start block: one size and one offset along the body axis
     blocks = [(size, dx) for size in sizes for dx in shifts_of(canon * size)]
-    keep = PARTIAL_VIEW_KEEP * keep if partial and mixture.partial_views else keep
-    if partial and mixture.partial_views and _extent(canon[:, 0]) < SHORT_VIEW * _extent(mixture.mean[:, 0]):
+    keep = PARTIAL_VIEW_KEEP * keep if atlas_view else keep
+    if atlas_view and _extent(canon[:, 0]) < SHORT_VIEW * _extent(mixture.mean[:, 0]):
         # every start (see SHORT_VIEW), as far as EM's (starts, N, K) arrays stay within budget
         fits = _EM_BUDGET // (len(chiralities) * len(canon) * len(mixture.mean))
         keep = max(keep, min(len(_START_ROTATIONS) // 2 * len(blocks), fits))
@@ -214,11 +214,12 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     starts = np.concatenate(offsets)
     # one offset at a time: the (starts, N, K) scores of every offset at once would take 100+ MB
     coarse = np.concatenate([log_likelihood(log_components(o)).sum(axis=-1) for o in offsets])
+
     def best(among):
         return np.flatnonzero(among)[np.argsort(-coarse[among])[:keep]]
 
     chosen = np.concatenate([best(mirrored == m) for m in chiralities])
-    if partial and not mixture.partial_views:
+    if template_view:
         # A short view onto a template keeps the best starts of its centred block too (what a
         # whole worm gets): the model chooses among them (TEMPLATE_SHORT_VIEW).
         centred = np.repeat([dx == 0.0 for _, dx in blocks], tried.sum())
@@ -332,16 +333,18 @@ def head_window(test: NeuronTable, mixture: Mixture, use_colour: bool = True,
     """The rows of ``test`` that lie in its head, when its neurons spread further along the body
     axis than a head's (more than ``reach`` times the reference's length, :func:`body_reach`;
     None otherwise, and for a reference without ``partial_views``, i.e. a template). A window
-    that long slides along the test's body axis; each window is registered and the one the reference explains best
-    wins (the summed log-likelihood of its neurons above the outlier class's). Registered whole,
-    a head with 40 neurons more over 60 µm of body was placed 12-14 µm from its names' atlas
-    positions (5-7 µm for the head alone) and the panel's top-1 fell from 75 to 40 % (NP; 120
-    over 250 µm: 13 %); benchmarks/robustness.py. NP's own heads lose 2-5 ventral-cord neurons
+    that long slides along the test's body axis; each window is registered and the one the
+    reference explains best wins (the summed log-likelihood of its neurons above the outlier
+    class's). Registered whole, a head with 40 neurons more over 60 µm of body was placed
+    12-14 µm from its names' atlas positions (5-7 µm for the head alone) and the panel's top-1
+    fell from 75 to 40 % (NP; 120 over 250 µm: 13 %); benchmarks/robustness.py. NP's own heads lose 2-5 ventral-cord neurons
     (VB3, VA2, DA1, ...) that an atlas without NP does not name, and place the rest better."""
-    if not mixture.partial_views or body_reach(test, mixture) <= reach:
+    if not mixture.partial_views:
         return None
     x = _body_axis(test, mixture)
     length = reach * _extent(mixture.mean[:, 0])
+    if np.ptp(x) <= length:  # body_reach(test) <= reach
+        return None
     best, best_gain = None, -np.inf
     for low in np.arange(x.min(), x.max() - length + HEAD_WINDOW_STEP_UM, HEAD_WINDOW_STEP_UM):
         rows = np.flatnonzero((x >= low) & (x <= low + length))
