@@ -367,6 +367,12 @@ def test_a_table_not_in_micrometres_gets_a_warning(tmp_path, table_files, untrai
     assert run("label", tmp_path / "nm.csv", "--template", template, "--weights", untrained_weights, "--out", tmp_path / "o.csv") == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nm.csv: the neurons span" in err[0] and "must be micrometres" in err[0]
+    # pixels of 0.25 µm in x and y, z in µm: a plausible span, but neurons 4 times too far apart
+    in_pixels = NeuronTable(worm.xyz * [4, 4, 1], worm.colours, source="px.csv")
+    write_table(in_pixels, tmp_path / "px.csv")
+    assert run("label", tmp_path / "px.csv", "--template", template, "--weights", untrained_weights, "--out", tmp_path / "o.csv") == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "px.csv: its neurons lie" in err[0] and "must be micrometres" in err[0]  # first, before what follows from it
     assert run("label", test, "--template", template, "--weights", untrained_weights, "--out", tmp_path / "p.csv") == 0
     assert capsys.readouterr().err == ""
 

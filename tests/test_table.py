@@ -84,3 +84,33 @@ def test_atomic_write_leaves_no_partial_file(tmp_path, worm):
         write_table(Boom(), target)
     assert target.read_text() == before
     assert [p.name for p in tmp_path.iterdir()] == ["out.csv"]
+
+
+def test_pixel_coordinates_are_told_from_micrometres(worm):
+    """A head in pixels of 0.25-0.33 µm (x, y, and z too or not) lies 3+ times further apart
+    than a worm's neurons do; the worm as it is, and a sparse subset of it, do not."""
+    from napari_fdlc.table import TOO_SPREAD, implausible_scale, spread_factor
+
+    assert implausible_scale(worm) is None
+    for factors in ((4, 4, 4), (4, 4, 1), (3, 3, 3)):
+        in_pixels = NeuronTable(worm.xyz * np.array(factors), worm.colours, source="px.csv")
+        reason = implausible_scale(in_pixels)
+        assert reason and reason.startswith("px.csv: its neurons lie") and "micrometres" in reason and "\n" not in reason
+    rng = np.random.default_rng(0)
+    sparse = [spread_factor(worm.xyz[rng.choice(len(worm), 15, replace=False)]) for _ in range(50)]
+    assert max(sparse) < TOO_SPREAD
+
+
+def test_no_corpus_table_or_sparse_subset_looks_like_pixels(corpus_path):
+    """Every corpus table, and random subsets of 15 to 160 of its neurons (sparser annotation),
+    lies closer together than TOO_SPREAD times a young adult's head of as many neurons."""
+    from napari_fdlc.corpus import load_corpus
+    from napari_fdlc.table import TOO_SPREAD, implausible_scale, spread_factor
+
+    rng = np.random.default_rng(0)
+    for worm in load_corpus(corpus_path):
+        table = worm.table
+        assert implausible_scale(table) is None, worm.name
+        for n in (15, 30, 50, 160):
+            if len(table) > n:
+                assert spread_factor(table.xyz[rng.choice(len(table), n, replace=False)]) < TOO_SPREAD, (worm.name, n)

@@ -24,11 +24,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .colour import IDENTITY_CHANNELS, normal_scores
 from .geometry import canonical_frame
-from .table import NeuronTable
+from .table import YOUNG_ADULT_SPACING_UM, NeuronTable, neuron_spacing
 
 ROLL_STEPS = 12  # starting rolls about the body axis (every 30°)
 # µm: how far a neuron of one worm lies from the same neuron of another after the best
@@ -81,18 +80,6 @@ _EM_BUDGET = 2**24  # elements (64 MB in single precision) of one (starts, N, K)
 # 1.7-2.1 (they reach into the ventral cord).
 HEAD_WINDOW = 1.8
 HEAD_WINDOW_STEP_UM = 10.0  # at the reference's scale
-# A table whose neurons lie closer together than a complete young adult's head is a smaller
-# worm: the median distance from a neuron to its second-nearest one is 3.49-3.88 µm in NP's
-# heads (189-195 neurons, every head neuron; 4.0-7.0 in the other labs' sparser tables), and
-# sparser annotation, dropped neurons or part of a head only make it longer. Against the atlas
-# such a table is taken up to this spacing first: the registration's starts and scale bounds
-# are at a young adult's size, and from NP's heads shrunk to 0.75 EM placed them 8-20 µm from
-# their names (5.4-6.5 at full size). The panel on NP's heads shrunk to 0.75 / 0.6: 64.4 / 26.6
-# -> 79.8 / 79.8 % (as they are: 80.3), EY's at 0.6 76.3 -> 80.8 (shipped model, panel without
-# the lab; benchmarks/robustness.py). No corpus table is that dense (20 % spurious points 3-8
-# µm from NP's neurons: 3.33 at least). The second neighbour, not the first: a nucleus split
-# in two by a segmentation is one close pair.
-YOUNG_ADULT_SPACING_UM = 3.4
 _OUTLIER_LOG_DENSITY = -15.0  # per point: a neuron the reference lacks (-7 fitted closer but scored worse)
 _EXP_FLOOR = -80.0  # log-densities relative to their bound are exponentiated from here (_log_likelihood)
 
@@ -368,13 +355,15 @@ def _body_axis(table: NeuronTable, mixture: Mixture) -> np.ndarray:
     return canonical_frame(table.xyz)[0][:, 0] * mixture.partial_view_scale * smaller_worm_factor(table.xyz)
 
 
-def neuron_spacing(xyz: np.ndarray) -> float | None:
-    """The median distance (µm) from a neuron to its second-nearest one (None under 3 neurons)."""
-    if len(xyz) < 3:
-        return None
-    return float(np.median(cKDTree(xyz).query(xyz, k=3)[0][:, 2]))
-
-
+# A table whose neurons lie closer together than a complete young adult's head
+# (table.YOUNG_ADULT_SPACING_UM: NP's heads, every head neuron named; 4.0-7.0 µm in the other
+# labs' sparser tables, and sparser annotation, dropped neurons or part of a head only make it
+# longer) is a smaller worm. Against the atlas such a table is taken up to that spacing first:
+# the registration's starts and scale bounds are at a young adult's size, and from NP's heads
+# shrunk to 0.75 EM placed them 8-20 µm from their names (5.4-6.5 at full size). The panel on
+# NP's heads shrunk to 0.75 / 0.6: 64.4 / 26.6 -> 79.8 / 79.8 % (as they are: 80.3), EY's at 0.6
+# 76.3 -> 80.8 (shipped model, panel without the lab; benchmarks/robustness.py). No corpus table
+# is that dense (20 % spurious points 3-8 µm from NP's neurons: 3.33 at least).
 def smaller_worm_factor(xyz: np.ndarray) -> float:
     """How much ``xyz`` must grow for its neurons to lie no closer together than in a complete
     young adult's head (YOUNG_ADULT_SPACING_UM); 1 for a table no denser than that."""

@@ -121,18 +121,53 @@ class NeuronTable:
 # than this, or packed into less than MIN_SPAN_UM, are not in micrometres.
 MAX_SPAN_UM = 2000.0
 MIN_SPAN_UM = 5.0
+# A complete young adult's head: NP's tables name every head neuron (189-195), and there the
+# median distance from a neuron to its second-nearest is 3.49-3.88 µm (napari_fdlc.register
+# takes a denser table for a smaller worm). A random n of them lie further apart, about as
+# (HEAD_NEURONS / n)^(1/3).
+YOUNG_ADULT_SPACING_UM = 3.4
+HEAD_NEURONS = 190
+# A table whose neurons lie this many times further apart than that is not in µm (pixels, most
+# likely): the corpus's 97 tables reach 1.5, random subsets of them 2.8 (15 neurons; 2.0 for
+# 50, 1.5 for 160), while they give 4.0 or more in pixels of 0.25 µm (2.0-2.9 at twice their
+# size: not told). Judged from SPREAD_MIN_NEURONS neurons.
+TOO_SPREAD = 3.0
+SPREAD_MIN_NEURONS = 15
+
+
+def neuron_spacing(xyz: np.ndarray) -> float | None:
+    """The median distance (µm) from a neuron to its second-nearest one (None under 3 neurons).
+    The second, not the first: a nucleus split in two by a segmentation is one close pair."""
+    if len(xyz) < 3:
+        return None
+    from scipy.spatial import cKDTree
+
+    return float(np.median(cKDTree(xyz).query(xyz, k=3)[0][:, 2]))
+
+
+def spread_factor(xyz: np.ndarray) -> float | None:
+    """How many times further apart the neurons lie than in a young adult's head of as many
+    neurons (:func:`neuron_spacing` against YOUNG_ADULT_SPACING_UM at HEAD_NEURONS); None under 3."""
+    spacing = neuron_spacing(xyz)
+    return spacing / (YOUNG_ADULT_SPACING_UM * (HEAD_NEURONS / len(xyz)) ** (1 / 3)) if spacing else None
 
 
 def implausible_scale(table: "NeuronTable") -> str | None:
     """A one-line reason when the neurons' extent cannot be micrometres (nanometres, metres,
-    or a table of indices), else None. Tables of fewer than 10 neurons are not judged."""
+    or a table of indices), or they lie much further apart than a worm's neurons do (pixel
+    coordinates), else None. Tables of fewer than 10 neurons are not judged (the spacing: 15)."""
     if len(table) < 10:
         return None
     span = float(np.ptp(table.xyz, axis=0).max())
-    if MIN_SPAN_UM <= span <= MAX_SPAN_UM:
-        return None
-    return (f"{table.source}: the neurons span {span:.3g} along their longest axis, which cannot be µm "
-            f"(a worm is ~1000 µm long, a head ~100 µm); x_um, y_um, z_um must be micrometres")
+    if not MIN_SPAN_UM <= span <= MAX_SPAN_UM:
+        return (f"{table.source}: the neurons span {span:.3g} along their longest axis, which cannot be µm "
+                f"(a worm is ~1000 µm long, a head ~100 µm); x_um, y_um, z_um must be micrometres")
+    spread = spread_factor(table.xyz) if len(table) >= SPREAD_MIN_NEURONS else None
+    if spread is not None and spread > TOO_SPREAD:
+        return (f"{table.source}: its neurons lie {spread:.1f} times further apart than a worm's head of {len(table)} "
+                f"neurons would (median {neuron_spacing(table.xyz):.3g} to the second-nearest); x_um, y_um, z_um must be "
+                "micrometres (pixel coordinates times the voxel size)")
+    return None
 
 
 def _clean(name) -> str:

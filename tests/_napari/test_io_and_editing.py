@@ -313,3 +313,21 @@ def test_a_template_file_not_in_micrometres_gets_a_warning(make_napari_viewer, t
     assert widget.add_template_file(tmp_path / "um.csv") == "file: um.csv" and shown == []
     assert widget.add_template_file(tmp_path / "nm.csv") == "file: nm.csv"
     assert len(shown) == 1 and "must be micrometres" in shown[0]
+
+
+def test_neurons_not_in_micrometres_get_a_warning(make_napari_viewer, identifier, templates, monkeypatch):
+    """Auto-label on a points layer in pixels (0.25 µm in x and y) says why its names are poor."""
+    viewer = make_napari_viewer()
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    shown = []
+    monkeypatch.setattr(widget, "_notify_warning", shown.append)
+    widget.set_templates(templates)
+    zyx = templates[0].xyz[:, ::-1]
+    viewer.add_points(zyx, name="um")
+    viewer.add_points(zyx * [1, 4, 4], name="pixels")
+    widget.set_neurons("um")
+    assert widget.auto_label() is not None and shown == []
+    widget.set_neurons("pixels")
+    assert widget.auto_label() is not None
+    assert len(shown) == 1 and "its neurons lie" in shown[0] and "must be micrometres" in shown[0]

@@ -738,6 +738,8 @@ class AutoLabelWidget(QWidget):
             return table, labelling, carried
 
         def done(result):
+            from ..table import implausible_scale
+
             table, labelling, carried = result
             settings = {"template": template_text, "colour": use_colour, "diameter_um": diameter}
             if own:
@@ -749,6 +751,9 @@ class AutoLabelWidget(QWidget):
                     carried = {**carried, **carry_decisions(self.session, table.xyz)}
                 self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name)
             self._status(self._done_message(len(table), labelling))
+            reason = implausible_scale(table)
+            if reason:  # e.g. a voxel size or points layer not in µm: names come out meaningless, say why
+                self._notify_warning(reason)
 
         self._stack = stack if stack is not None else self._stack
         return self._start(work, done, wait, "auto-label")
