@@ -191,6 +191,16 @@ def test_cli_track_folder_with_labelled_reference(tmp_path, worm, untrained_weig
     assert (df["name"].to_numpy() == np.tile(worm.labels, 3)).mean() >= 0.98
 
 
+def test_cli_track_warns_of_a_recording_not_in_micrometres(tmp_path, worm, untrained_weights, capsys):
+    folder = tmp_path / "pixels"
+    for k in range(2):
+        write_table(NeuronTable((worm.xyz + [k, 0, 0]) * [4, 4, 1], worm.colours), folder / f"t{k}.csv")
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(folder), "--weights", str(untrained_weights), "--quiet", "--out", str(out)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "t0.csv: its neurons lie" in err[0] and "must be micrometres" in err[0]
+
+
 @pytest.mark.parametrize(
     "make, expected",
     [
