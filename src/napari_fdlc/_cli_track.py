@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import FdlcError, warn
+from .errors import FdlcError
 from .geometry import CHIRALITIES
 
 
@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .table import implausible_scale, read_table, write_table
+    from .table import read_table, warn_implausible_scales, write_table
     from .track import TrackSettings, read_sequence, track
 
     settings = TrackSettings(search=args.search, placement=args.placement, refine_steps=args.refine_steps,
@@ -70,10 +70,7 @@ def run(args: argparse.Namespace) -> int:
         references.append(_volume_at(seq, raw))
     if args.method != "fdlc" and len(references) > 1:
         raise FdlcError(f"--method {args.method} takes one reference")
-    for table in [seq.volumes[0], *references]:
-        reason = implausible_scale(table)
-        if reason:
-            warn(reason)
+    warn_implausible_scales([seq.volumes[0], *references])
     identifier = follower = None
     if args.method == "fdlc":
         from .identify import Identifier, default_identifier

@@ -18,7 +18,7 @@ from .errors import FdlcError, warn
 from .identify import (ADAPT_MIN_TESTS, FEW_NEURONS, Identifier, can_adapt_colours, colour_note, default_identifier,
                        harmonise, label_neurons, smaller_worm_note)
 from .match import Labelling, make_labelling, name_probabilities
-from .table import COORDS, NeuronTable, implausible_scale, read_table, write_table
+from .table import COORDS, NeuronTable, read_table, warn_implausible_scales, write_table
 
 
 # Columns of an earlier ``fdlc label`` output: labelling that output again must not carry its
@@ -110,10 +110,7 @@ def label_files(
             raise FdlcError(f"{t.source}: the template has no named neuron (a 'label' column with names is needed)")
     if method == "fdlc":  # once for all the tests
         template_tables = harmonise(template_tables)
-    for t in [*test_tables, *template_tables]:
-        reason = implausible_scale(t)
-        if reason:
-            warn(reason)
+    warn_implausible_scales([*test_tables, *template_tables])
     for t in test_tables:
         if len(t) < FEW_NEURONS:
             warn(f"{t.source}: only {len(t)} neuron(s): names from so few positions are guesses, confidences too")

@@ -149,7 +149,12 @@ def spread_factor(xyz: np.ndarray) -> float | None:
     """How many times further apart the neurons lie than in a young adult's head of as many
     neurons (:func:`neuron_spacing` against YOUNG_ADULT_SPACING_UM at HEAD_NEURONS); None under 3."""
     spacing = neuron_spacing(xyz)
-    return spacing / (YOUNG_ADULT_SPACING_UM * (HEAD_NEURONS / len(xyz)) ** (1 / 3)) if spacing else None
+    return spacing / _head_spacing(len(xyz)) if spacing else None
+
+
+def _head_spacing(n: int) -> float:
+    """The spacing (µm) of n neurons of a young adult's head (see HEAD_NEURONS)."""
+    return YOUNG_ADULT_SPACING_UM * (HEAD_NEURONS / n) ** (1 / 3)
 
 
 def implausible_scale(table: "NeuronTable") -> str | None:
@@ -162,12 +167,20 @@ def implausible_scale(table: "NeuronTable") -> str | None:
     if not MIN_SPAN_UM <= span <= MAX_SPAN_UM:
         return (f"{table.source}: the neurons span {span:.3g} along their longest axis, which cannot be µm "
                 f"(a worm is ~1000 µm long, a head ~100 µm); x_um, y_um, z_um must be micrometres")
-    spread = spread_factor(table.xyz) if len(table) >= SPREAD_MIN_NEURONS else None
-    if spread is not None and spread > TOO_SPREAD:
-        return (f"{table.source}: its neurons lie {spread:.1f} times further apart than a worm's head of {len(table)} "
-                f"neurons would (median {neuron_spacing(table.xyz):.3g} to the second-nearest); x_um, y_um, z_um must be "
-                "micrometres (pixel coordinates times the voxel size)")
+    spacing = neuron_spacing(table.xyz) if len(table) >= SPREAD_MIN_NEURONS else None
+    if spacing is not None and spacing > TOO_SPREAD * _head_spacing(len(table)):
+        return (f"{table.source}: its neurons lie {spacing / _head_spacing(len(table)):.1f} times further apart than a "
+                f"worm's head of {len(table)} neurons would (median {spacing:.3g} to the second-nearest); x_um, y_um, "
+                "z_um must be micrometres (pixel coordinates times the voxel size)")
     return None
+
+
+def warn_implausible_scales(tables: list["NeuronTable"]) -> None:
+    """One warning line (:func:`implausible_scale`) for each of ``tables`` that cannot be in µm."""
+    for table in tables:
+        reason = implausible_scale(table)
+        if reason:
+            warn(reason)
 
 
 def _clean(name) -> str:

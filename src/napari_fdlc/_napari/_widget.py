@@ -709,6 +709,7 @@ class AutoLabelWidget(QWidget):
 
         def work():
             from ..identify import label_neurons
+            from ..table import implausible_scale
 
             table = given_table
             if table is None:
@@ -735,12 +736,10 @@ class AutoLabelWidget(QWidget):
             labelling = label_neurons(table, templates, use_colour=use_colour, fixed=fixed or None,
                                       identifier=_with_chirality(identifier, chirality))
             signals.progress.emit(1.0, "done")
-            return table, labelling, carried
+            return table, labelling, carried, implausible_scale(table)
 
         def done(result):
-            from ..table import implausible_scale
-
-            table, labelling, carried = result
+            table, labelling, carried, scale_warning = result
             settings = {"template": template_text, "colour": use_colour, "diameter_um": diameter}
             if own:
                 self.session.settings.update(settings)
@@ -751,9 +750,8 @@ class AutoLabelWidget(QWidget):
                     carried = {**carried, **carry_decisions(self.session, table.xyz)}
                 self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name)
             self._status(self._done_message(len(table), labelling))
-            reason = implausible_scale(table)
-            if reason:  # e.g. a voxel size or points layer not in µm: names come out meaningless, say why
-                self._notify_warning(reason)
+            if scale_warning:  # e.g. a voxel size or points layer not in µm: names come out meaningless, say why
+                self._notify_warning(scale_warning)
 
         self._stack = stack if stack is not None else self._stack
         return self._start(work, done, wait, "auto-label")
