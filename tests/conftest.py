@@ -66,3 +66,21 @@ def _one_torch_thread():
     except ImportError:
         return
     torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="session")
+def recording(tmp_path_factory):
+    """A short rendered recording of one moving worm, as an OME-TIFF with a time axis: (path,
+    the rendered truth per time point, the source neuron of each true neuron per time point)."""
+    from napari_fdlc.io.images import write_tiff
+    from napari_fdlc.render import random_worm, render_recording
+    from napari_fdlc.track import SequenceParams, simulate_sequence
+
+    worm = random_worm(45, size_um=(44, 16, 12), min_spacing_um=2.6, seed=5)
+    gentle = SequenceParams(frames=3, bend_curvature=0.002, roll=0.05, xy_rotation=0.2, drift_um=2.0,
+                            drop_fraction=(0.0, 0.0), max_spurious=0, jitter_um=0.1)
+    volumes, origins = simulate_sequence(worm, 1, gentle)
+    series, truths = render_recording(volumes, origins, voxel_size_zyx=(1.5, 0.35, 0.35), gut=False, seed=2)
+    path = tmp_path_factory.mktemp("recording") / "recording.ome.tif"
+    write_tiff(path, series)
+    return path, truths, origins

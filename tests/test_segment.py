@@ -8,10 +8,11 @@ from scipy.stats import spearmanr
 
 from napari_fdlc.cli import main
 from napari_fdlc.errors import FdlcError
-from napari_fdlc.io.images import Stack, write_tiff
+from napari_fdlc.io.images import Stack, StackSeries, write_tiff
 from napari_fdlc.render import random_worm, render_stack
-from napari_fdlc.segment import detect_nuclei, measure_colours, score_detections, segment_stack
+from napari_fdlc.segment import detect_nuclei, measure_colours, score_detections, segment_series, segment_stack
 from napari_fdlc.table import NeuronTable, read_table
+from napari_fdlc.track import split_by_time
 
 
 @pytest.fixture(scope="module")
@@ -149,6 +150,36 @@ def test_without_w_the_sum_is_used(rendered, capsys):
     found = segment_stack(unknown)
     assert "writing no colours" in capsys.readouterr().err
     assert found.colours == {} and len(found) > 0.8 * len(truth)
+
+
+def test_a_recording_is_segmented_one_time_point_at_a_time(rendered, capsys):
+    stack, truth = rendered
+    roles = ["R", "G", "B", None]  # no W: the warning comes once for the whole recording
+    series = StackSeries(np.stack([stack.data, stack.data[:, :, :, ::-1]]), stack.voxel_size_zyx, roles)
+    seen = []
+    tables = segment_series(series, progress=lambda done, total: seen.append((done, total)))
+    assert seen == [(1, 2), (2, 2)]
+    assert capsys.readouterr().err.count("no W") == 1
+    alone = segment_stack(Stack(stack.data, stack.voxel_size_zyx, roles))
+    np.testing.assert_allclose(tables[0].xyz, alone.xyz)
+    np.testing.assert_allclose(tables[0].colours["R"], alone.colours["R"])
+    # the second time point is the first mirrored in x: the same nuclei, mirrored
+    width = (stack.shape_zyx[2] - 1) * stack.voxel_size_zyx[2]
+    mirrored = tables[1].xyz * [-1, 1, 1] + [width, 0, 0]
+    assert score_detections(tables[0].xyz, mirrored, 0.5)["f1"] >= 0.97
+
+
+def test_cli_segment_a_recording_writes_a_t_column(tmp_path, recording, capsys):
+    path, truths, _ = recording
+    out = tmp_path / "neurons.csv"
+    assert main(["segment", str(path), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "segmented 3/3 time points" in err and "in 3 time points" in err
+    sequence = split_by_time(read_table(out))
+    assert sequence.times == [0, 1, 2]
+    for volume, truth in zip(sequence.volumes, truths):
+        assert score_detections(truth.xyz, volume.xyz)["f1"] >= 0.9
+        assert set(volume.colours) == {"R", "G", "B", "W"}
 
 
 def test_progress_is_reported(rendered):

@@ -243,6 +243,35 @@ def test_cli_track_follow_with_the_full_model(tmp_path, gentle, untrained_weight
     assert (pd.read_csv(out)["track_id"] >= 0).mean() > 0.9
 
 
+def test_cli_track_an_image_recording(tmp_path, recording):
+    """A stack file with a time axis is segmented at every time point, then tracked; the output
+    also has what the segmentation measured (colours, voxel coordinates)."""
+    from scipy.spatial import cKDTree
+
+    path, truths, origins = recording
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(path), "--out", str(out), "--quiet"]) == 0
+    df = pd.read_csv(out)
+    assert sorted(df["t"].unique()) == [0, 1, 2]
+    assert {"neuron_index", "track_id", "track_conf", "R", "G", "B", "W", "x_px", "score"} <= set(df.columns)
+    # Each detection's source neuron (through the rendered truth) keeps the track it had at t = 0.
+    track_of_source, kept, found = {}, [], []
+    for t, truth in enumerate(truths):
+        rows = df[df["t"] == t]
+        distance, nearest = cKDTree(truth.xyz).query(rows[["x_um", "y_um", "z_um"]].to_numpy())
+        source = np.where(distance < 1.5, origins[t][nearest], -1)
+        found.append(len(set(source[source >= 0])) / len(truth))
+        for s, tid in zip(source, rows["track_id"]):
+            if s < 0:
+                continue
+            if t == 0:
+                track_of_source[s] = tid
+            elif s in track_of_source:
+                kept.append(track_of_source[s] == tid)
+    assert min(found) >= 0.9, found
+    assert np.mean(kept) >= 0.9, np.mean(kept)
+
+
 def test_track_settings_are_checked():
     with pytest.raises(FdlcError, match="chunk"):
         TrackSettings(chunk=0).check()

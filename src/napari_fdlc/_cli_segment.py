@@ -1,4 +1,8 @@
-"""``fdlc segment``: detect nuclei in a 3D stack and write a neuron table with their colours."""
+"""``fdlc segment``: detect nuclei in a 3D stack and write a neuron table with their colours.
+
+A recording (a file with a time axis) gives one table with a ``t`` column, every time point
+segmented alike: what ``fdlc track`` reads (and ``fdlc track`` takes the recording itself too).
+"""
 
 from __future__ import annotations
 
@@ -6,13 +10,21 @@ import argparse
 import sys
 import time
 
-from .errors import FdlcError
+from .errors import FdlcError, warn
 
 _LONG_VOXELS = 20_000_000  # above this, print progress lines (a few seconds of work)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("stack", metavar="STACK", help="3D stack: TIFF, OME-TIFF, ImageJ TIFF, NWB or ND2")
+    parser.add_argument("stack", metavar="STACK",
+                        help="3D stack or a recording of them over time: TIFF, OME-TIFF, ImageJ TIFF, NWB or ND2")
+    add_stack_arguments(parser)
+    parser.add_argument("--out", required=True, help="output neuron table (CSV; with a t column for a recording)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
+    """How to read a stack and find its nuclei (``fdlc segment``, and ``fdlc track`` on a recording)."""
     parser.add_argument(
         "--voxel-size", nargs=3, type=float, metavar=("Z", "Y", "X"),
         help="voxel size in µm (overrides the file; needed when the file does not say it)",
@@ -22,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="role of each channel in file order: R G B W GFP, or '-' to ignore one "
         "(default: from the channel names in the file)",
     )
-    parser.add_argument("--axes", help="axes of a TIFF that does not record them, e.g. ZCYX")
+    parser.add_argument("--axes", help="axes of a TIFF that does not record them, e.g. ZCYX or TZCYX")
     parser.add_argument("--diameter-um", type=float, default=3.0, help="typical nucleus diameter in µm (default 3)")
     parser.add_argument(
         "--threshold", type=float, default=6.0,
@@ -36,41 +48,64 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-colour-split", action="store_true",
         help="find nuclei on W alone (by default a touching nucleus that only R, G or B separates is added)",
     )
-    parser.add_argument("--out", required=True, help="output neuron table (CSV)")
-    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def segment_recording(args: argparse.Namespace, path: str, prog: str) -> tuple[list[int], list]:
+    """Read ``path`` as a recording (a single stack is a recording of one) and segment every
+    time point with the options of :func:`add_stack_arguments`: the time points where nuclei
+    were found (0-based) and their neuron tables. Progress lines on stderr (unless
+    ``args.quiet``) for a recording or a big stack."""
+    from .io.images import read_series
+    from .segment import segment_series
+
+    if not (args.diameter_um > 0):
+        raise FdlcError(f"--diameter-um must be a positive number of µm (got {args.diameter_um})")
+    series = read_series(path, voxel_size=args.voxel_size, channels=args.channels, axes=args.axes)
+    z, y, x = series.shape_zyx
+    start = time.monotonic()
+    options = dict(diameter_um=args.diameter_um, threshold=args.threshold, unmix=not args.no_unmix,
+                   colour_split=not args.no_colour_split)
+    try:
+        if len(series) == 1:
+            progress = None
+            if not args.quiet and series.n_channels * z * y * x > _LONG_VOXELS:
+                def progress(fraction: float, message: str) -> None:
+                    print(f"{prog}: {100 * fraction:3.0f}% {message} ({time.monotonic() - start:.1f} s)",
+                          file=sys.stderr, flush=True)
+            from .segment import segment_stack
+
+            tables = [segment_stack(series.volume(0), progress=progress, **options)]
+        else:
+            def volumes_done(done: int, total: int) -> None:
+                if not args.quiet:
+                    print(f"{prog}: segmented {done}/{total} time points ({time.monotonic() - start:.1f} s)",
+                          file=sys.stderr, flush=True)
+
+            tables = segment_series(series, progress=volumes_done, **options)
+    except MemoryError:
+        raise FdlcError(f"{path}: not enough memory to segment this stack") from None
+    empty = [t for t, table in enumerate(tables) if len(table) == 0]
+    if len(empty) == len(tables):
+        raise FdlcError(f"{path}: no nuclei found; check --voxel-size and --diameter-um, or lower --threshold")
+    if empty:
+        shown = ", ".join(map(str, empty[:5])) + (" …" if len(empty) > 5 else "")
+        warn(f"{path}: no nuclei found at {len(empty)} time point(s) ({shown}); they are left out")
+    found = [t for t, table in enumerate(tables) if len(table)]
+    return found, [tables[t] for t in found]
 
 
 def run(args: argparse.Namespace) -> int:
-    from .io.images import read_stack
-    from .segment import segment_stack
     from .table import write_table
+    from .track import join_by_time
 
     try:
-        if not (args.diameter_um > 0):
-            raise FdlcError(f"--diameter-um must be a positive number of µm (got {args.diameter_um})")
-        stack = read_stack(args.stack, voxel_size=args.voxel_size, channels=args.channels, axes=args.axes)
-        voxels = stack.n_channels * int(stack.shape_zyx[0]) * int(stack.shape_zyx[1]) * int(stack.shape_zyx[2])
-        progress = None
-        if not args.quiet and voxels > _LONG_VOXELS:
-            start = time.monotonic()
-
-            def progress(fraction: float, message: str) -> None:
-                print(f"fdlc segment: {100 * fraction:3.0f}% {message} ({time.monotonic() - start:.1f} s)",
-                      file=sys.stderr, flush=True)
-
-        table = segment_stack(stack, diameter_um=args.diameter_um, threshold=args.threshold, progress=progress,
-                              unmix=not args.no_unmix, colour_split=not args.no_colour_split)
-        if len(table) == 0:
-            raise FdlcError(
-                f"{args.stack}: no nuclei found; check --voxel-size and --diameter-um, or lower --threshold"
-            )
-        write_table(table, args.out)
+        times, tables = segment_recording(args, args.stack, "fdlc segment")
+        write_table(tables[0] if times == [0] else join_by_time(tables, times), args.out)
     except FdlcError as exc:
         print(f"fdlc: error: {exc}", file=sys.stderr)
         return 2
-    except MemoryError:
-        print(f"fdlc: error: {args.stack}: not enough memory to segment this stack", file=sys.stderr)
-        return 2
     if not args.quiet:
-        print(f"fdlc segment: {len(table)} nuclei -> {args.out}", file=sys.stderr)
+        found = f"{len(tables[0])} nuclei" if times == [0] else \
+            f"{sum(map(len, tables))} nuclei in {len(tables)} time points"
+        print(f"fdlc segment: {found} -> {args.out}", file=sys.stderr)
     return 0

@@ -1,7 +1,9 @@
 """give every neuron of a sequence of volumes its track ID (and name) over time.
 
 Input: one neuron table with a ``t`` column (time point), a folder of neuron tables (one volume
-each, natural name order), or several tables (in the order given). Track IDs are the row indices
+each, natural name order), several tables (in the order given), or an image recording (a stack
+file with a time axis: every time point is segmented as ``fdlc segment`` does, and the output
+also gets the columns it measures, e.g. each neuron's GFP per time point). Track IDs are the row indices
 of the first reference volume (default: the first time point); with a labelled reference each
 track also gets the reference neuron's name. Output: one CSV, one row per neuron per time point:
 ``t, neuron_index, x_um, y_um, z_um, track_id, track_conf`` (+ ``name``, + ``file``);
@@ -22,7 +24,8 @@ from .geometry import CHIRALITIES
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("inputs", nargs="+", metavar="INPUT",
-                        help="a CSV with a t column, a folder of CSVs, or several CSVs (one volume each)")
+                        help="a CSV with a t column, a folder of CSVs, several CSVs (one volume each), "
+                        "or an image recording (TIFF, OME-TIFF or ND2 with a time axis; segmented first)")
     parser.add_argument("--reference", action="append", default=[], metavar="R.csv",
                         help="reference volume of the same worm, labelled or not (repeatable); default: the first time point")
     parser.add_argument("--reference-t", action="append", default=[], metavar="T",
@@ -47,6 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=None, help="CPU threads for the model (default: torch's)")
     parser.add_argument("--out", required=True, help="output CSV")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    from ._cli_segment import add_stack_arguments
+
+    add_stack_arguments(parser.add_argument_group("an image recording as input (how fdlc segment reads it)"))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -63,9 +69,17 @@ def run(args: argparse.Namespace) -> int:
         raise FdlcError(f"{out}: the folder {out.parent} does not exist")
     if args.threads is not None and args.threads < 1:
         raise FdlcError(f"--threads must be at least 1 (got {args.threads})")
-    # Validate every input before any model work.
-    seq = read_sequence(args.inputs)
+    # Validate every input before any model work (the references before a recording's segmentation).
     references = [read_table(r) for r in args.reference]
+    recording = _image_recording(args.inputs)
+    if recording is None:
+        seq = read_sequence(args.inputs)
+    else:
+        from ._cli_segment import segment_recording
+        from .track import Sequence
+
+        times, volumes = segment_recording(args, recording, "fdlc track")
+        seq = Sequence(volumes, times, [""] * len(volumes))
     for raw in args.reference_t:
         references.append(_volume_at(seq, raw))
     if args.method != "fdlc" and len(references) > 1:
@@ -90,8 +104,25 @@ def run(args: argparse.Namespace) -> int:
             print(f"fdlc track: {done}/{total} volumes ({rate:.0f}/s)", file=sys.stderr, flush=True)
 
     result = track(seq, references or None, identifier, settings, progress, method=args.method, follower=follower)
-    write_table(result.frame(seq.volumes), out)
+    frame = result.frame(seq.volumes)
+    if recording is not None:  # what the segmentation measured, e.g. each neuron's GFP per time point
+        import pandas as pd
+
+        from .track import join_by_time
+
+        measured = join_by_time(seq.volumes, seq.times).drop(columns=["t", "x_um", "y_um", "z_um", "label"])
+        frame = pd.concat([frame, measured.drop(columns=[c for c in measured if c in frame])], axis=1)
+    write_table(frame, out)
     return 0
+
+
+def _image_recording(inputs: list[str]) -> str | None:
+    """The input when it is one image file (a recording to segment first), else None."""
+    from .io.images import is_image_file
+
+    if len(inputs) == 1 and Path(inputs[0]).suffix.lower() != ".csv" and is_image_file(inputs[0]):
+        return inputs[0]
+    return None
 
 
 def _volume_at(seq, raw: str):

@@ -26,7 +26,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.special import erfc
 
-from .io.images import ImageError, Stack
+from .io.images import ImageError, Stack, StackSeries
 from .table import NeuronTable
 
 CHANNELS = ("R", "G", "B", "W")
@@ -100,6 +100,8 @@ def render_stack(
     align: bool = True,
     gfp: bool = False,
     seed: int = 0,
+    identity: np.ndarray | None = None,
+    identity_seed: int = 0,
     **overrides,
 ) -> tuple[Stack, NeuronTable]:
     """Render a 4-channel (R, G, B, W; + GFP with ``gfp``) uint16 stack of ``table``'s neurons.
@@ -110,6 +112,10 @@ def render_stack(
     y_um, z_um`` as in :mod:`napari_fdlc.io.images`, the input colours and labels, the rendered
     ``W`` brightness, and extra columns ``radius_um`` and ``R_int, G_int, B_int`` (relative
     intensities actually rendered). ``overrides`` set :class:`RenderParams` fields.
+
+    ``identity`` (one integer per neuron, -1 = none) keeps each neuron's own properties (size,
+    shape, brightness, GFP activity; drawn from ``identity_seed``) the same in every stack
+    rendered with it: the volumes of one recording. The noise comes from ``seed``.
     """
     p = RenderParams(**{**(params.__dict__ if params else {}), **overrides})
     rng = np.random.default_rng(seed)
@@ -130,18 +136,27 @@ def render_stack(
     zyx = zyx - (zyx.max(axis=0) + zyx.min(axis=0)) / 2 + centre_um
     n = len(zyx)
 
+    def per_neuron(draw):
+        """A property per neuron, ``draw(generator, count)``: from ``rng``, or the same for the
+        same ``identity`` in every call (neurons without one get their own)."""
+        if identity is None:
+            return draw(rng, n)
+        ids = np.asarray(identity, dtype=int)
+        fixed = draw(np.random.default_rng(identity_seed), int(ids.max(initial=0)) + 1)[np.maximum(ids, 0)]
+        return np.where((ids >= 0).reshape((n,) + (1,) * (fixed.ndim - 1)), fixed, draw(rng, n))
+
     # Nucleus geometry: radius capped by the nearest neighbour so nuclei touch but never overlap.
     nn = cKDTree(zyx).query(zyx, k=2)[0][:, 1] if n > 1 else np.full(n, np.inf)
-    radius = rng.normal(p.nucleus_radius_um, p.nucleus_radius_sd_um, n)
+    radius = per_neuron(lambda g, m: g.normal(p.nucleus_radius_um, p.nucleus_radius_sd_um, m))
     radius = np.clip(radius, 0.6 * p.nucleus_radius_um, 1.6 * p.nucleus_radius_um)
     radius = np.minimum(radius, np.maximum(0.48 * nn, 0.5))
-    ratios = np.exp(rng.normal(0.0, p.elongation_sd, (n, 3)))
+    ratios = np.exp(per_neuron(lambda g, m: g.normal(0.0, p.elongation_sd, (m, 3))))
     ratios /= np.cbrt(ratios.prod(axis=1, keepdims=True))  # keep the volume of the sphere
     semi = radius[:, None] * ratios  # z, y, x semi-axes before the in-plane rotation
-    angle = rng.uniform(0, np.pi, n)
+    angle = per_neuron(lambda g, m: g.uniform(0, np.pi, m))
 
     # Channel amplitudes (relative; W = 1 on average).
-    w_bright = np.exp(rng.normal(0.0, p.brightness_sd, n))
+    w_bright = np.exp(per_neuron(lambda g, m: g.normal(0.0, p.brightness_sd, m)))
     if "W" in table.colours:
         w_bright *= np.exp(0.25 * _zscore(table.colours["W"]))
     colour_int = {}
@@ -149,14 +164,14 @@ def render_stack(
         if c in table.colours:
             colour_int[c] = colour_intensities(table.colours[c])
         else:  # NeuroPAL-like: each colour channel clearly on or off in a neuron
-            on = rng.random(n) < 0.55
-            colour_int[c] = np.where(on, rng.uniform(0.3, 1.0, n), rng.uniform(0.03, 0.1, n))
+            colour_int[c] = per_neuron(
+                lambda g, m: np.where(g.random(m) < 0.55, g.uniform(0.3, 1.0, m), g.uniform(0.03, 0.1, m)))
     amps = np.stack([colour_int["R"], colour_int["G"], colour_int["B"], w_bright], axis=1)
     mix = np.eye(4) + p.bleed * (BLEED - np.eye(4))
     amps_detected = amps @ mix.T  # bleed-through happens per fluorophore, before noise
     channels = list(CHANNELS)
     if gfp:
-        activity = np.where(rng.random(n) < 0.3, rng.uniform(0.3, 1.0, n), rng.uniform(0.0, 0.05, n))
+        activity = per_neuron(lambda g, m: np.where(g.random(m) < 0.3, g.uniform(0.3, 1.0, m), g.uniform(0.0, 0.05, m)))
         amps_detected = np.concatenate([amps_detected, activity[:, None]], axis=1)
         channels.append("GFP")
     n_ch = len(channels)
@@ -204,6 +219,35 @@ def render_stack(
         for k, c in enumerate(("R", "G", "B")):
             truth.colours[c] = amps[:, k]
     return stack, truth.subset(np.flatnonzero(inside))
+
+
+def render_recording(
+    volumes: list[NeuronTable],
+    identities: list[np.ndarray],
+    params: RenderParams | None = None,
+    seed: int = 0,
+    **overrides,
+) -> tuple[StackSeries, list[NeuronTable]]:
+    """Render a recording of one worm: :func:`napari_fdlc.track.simulate_sequence`'s volumes and
+    the source neuron of each of their neurons (``identities``, -1 = spurious), one stack per
+    time point, all of one shape (the largest extent of any volume), each volume centred in it
+    (drift in the field of view is left out) and in its own frame (no alignment: the worm turns
+    and bends as the volumes do). A neuron keeps its size, shape and brightness over time; each
+    time point has its own noise (seed ``seed + 1 + t``). Returns the recording (T, C, Z, Y, X)
+    and the ground truth per time point, as :func:`render_stack`'s."""
+    if not volumes:
+        raise ImageError("render: the recording has no volume")
+    p = RenderParams(**{**(params.__dict__ if params else {}), **overrides})
+    vox = np.asarray(p.voxel_size_zyx, dtype=float)
+    margin = np.asarray(p.margin_um, dtype=float)
+    extent = np.max([np.ptp(v.xyz[:, ::-1], axis=0) for v in volumes], axis=0) + 2 * margin
+    shape = np.maximum(np.ceil(extent / vox).astype(int) + 1, 3)
+    rendered = [render_stack(v, p, shape_zyx=shape, align=False, seed=seed + 1 + t, identity=ids, identity_seed=seed)
+                for t, (v, ids) in enumerate(zip(volumes, identities))]
+    first = rendered[0][0]
+    series = StackSeries(np.stack([stack.data for stack, _ in rendered]), first.voxel_size_zyx, first.channel_roles,
+                         source=f"<rendered recording seed={seed}>", channel_names=first.channel_names)
+    return series, [truth for _, truth in rendered]
 
 
 def spread_apart(xyz: np.ndarray, min_spacing_um: float, iterations: int = 20) -> np.ndarray:

@@ -48,7 +48,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from .errors import warn
-from .io.images import ImageError, Stack
+from .io.images import ImageError, Stack, StackSeries
 from .table import NeuronTable
 
 Progress = Callable[[float, str], None]
@@ -440,11 +440,45 @@ def segment_stack(
     ``colour_split``: add the touching nuclei that only a colour channel separates
     (:func:`split_by_colour`).
     """
-    if stack.role_index("W") is None:
+    _warn_without_w(stack)
+    return _segment_volume(stack, diameter_um, progress, threshold, min_relative, unmix, colour_split)
+
+
+def segment_series(
+    series: StackSeries,
+    diameter_um: float = 3.0,
+    progress: Callable[[int, int], None] | None = None,
+    **options,
+) -> list[NeuronTable]:
+    """Every time point of a recording segmented alike (:func:`segment_stack`, whose
+    ``options`` it takes), one volume in memory at a time: a neuron table per time point, in the
+    recording's frame. ``progress(done, total)`` after each volume."""
+    _warn_without_w(series)
+    tables = []
+    for t in range(len(series)):
+        tables.append(_segment_volume(series.volume(t), diameter_um, **options))
+        if progress is not None:
+            progress(t + 1, len(series))
+    return tables
+
+
+def _warn_without_w(stack: Stack | StackSeries) -> None:
+    if "W" not in stack.channel_roles:
         warn(
             f"{stack.source}: no W (TagRFP-T) channel marked; detecting on the sum of channels"
             + ("" if any(stack.channel_roles) else " and writing no colours (give the channel roles)")
         )
+
+
+def _segment_volume(
+    stack: Stack,
+    diameter_um: float = 3.0,
+    progress: Progress | None = None,
+    threshold: float = 6.0,
+    min_relative: float = 0.08,
+    unmix: bool = True,
+    colour_split: bool = True,
+) -> NeuronTable:
     _report(progress, 0.0, "loading")
     volume = detection_image(stack)
     zyx, score = detect_nuclei(

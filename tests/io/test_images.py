@@ -11,7 +11,7 @@ import tifffile
 
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.io import images
-from napari_fdlc.io.images import Stack, read_nd2, read_stack, role_from_name, write_tiff
+from napari_fdlc.io.images import Stack, StackSeries, read_nd2, read_series, read_stack, role_from_name, write_tiff
 from napari_fdlc.io.nwb import _text, read_nwb_neurons, write_nwb
 from napari_fdlc.table import NeuronTable
 
@@ -93,12 +93,47 @@ def test_tiff_without_axes_asks_for_them(tmp_path):
     one_line_error(exc, "axes")
 
 
-def test_imagej_time_series_is_refused(tmp_path):
+def test_a_time_series_is_a_recording_not_a_stack(tmp_path):
     path = tmp_path / "movie.tif"
-    tifffile.imwrite(path, np.zeros((3, 4, 8, 8), np.uint16), imagej=True, metadata={"axes": "TZYX"})
+    data = np.arange(3 * 4 * 8 * 8, dtype=np.uint16).reshape(3, 4, 8, 8)
+    tifffile.imwrite(path, data, imagej=True, metadata={"axes": "TZYX"})
     with pytest.raises(FdlcError) as exc:
         read_stack(path, voxel_size=(1, 0.3, 0.3))
-    one_line_error(exc, "3 time points")
+    one_line_error(exc, "3 time points", "fdlc track")
+    series = read_series(path, voxel_size=(1, 0.3, 0.3), channels=["W"])
+    assert len(series) == 3 and series.data.shape == (3, 1, 4, 8, 8)
+    np.testing.assert_array_equal(series.volume(2).data[0], data[2])
+
+
+@pytest.mark.parametrize("ome", [True, False], ids=["ome-tiff", "imagej"])
+@pytest.mark.parametrize("lazy", [False, True], ids=["in-memory", "lazy"])
+def test_recording_round_trip(tmp_path, stack, ome, lazy, monkeypatch):
+    rng = np.random.default_rng(1)
+    data = rng.integers(0, 4000, (3,) + stack.data.shape).astype(np.uint16)
+    path = tmp_path / ("rec.ome.tif" if ome else "rec.tif")
+    write_tiff(path, StackSeries(data, stack.voxel_size_zyx, stack.channel_roles, channel_names=NAMES), ome=ome)
+    if lazy:
+        monkeypatch.setattr(images, "LAZY_BYTES", 0)
+    series = read_series(path)
+    assert len(series) == 3 and series.shape_zyx == stack.shape_zyx and series.n_channels == 4
+    assert series.channel_roles == ["R", "G", "B", "W"]
+    np.testing.assert_allclose(series.voxel_size_zyx, stack.voxel_size_zyx, rtol=1e-5)
+    assert isinstance(series.data, np.ndarray) != lazy
+    for t in range(3):
+        volume = series.volume(t)
+        assert isinstance(volume.data, np.ndarray) and volume.source.endswith(f"(t={t})")
+        np.testing.assert_array_equal(volume.data, data[t])
+
+
+def test_a_single_stack_is_a_recording_of_one(tmp_path, stack):
+    path = tmp_path / "one.ome.tif"
+    write_tiff(path, stack)
+    series = read_series(path)
+    assert len(series) == 1 and series.volume(0).source == str(path)
+    np.testing.assert_array_equal(series.volume(0).data, stack.data)
+    with pytest.raises(FdlcError) as exc:
+        StackSeries(stack.data, stack.voxel_size_zyx, stack.channel_roles)
+    one_line_error(exc, "T, C, Z, Y, X")
 
 
 def test_2d_image_is_refused(tmp_path):
@@ -328,10 +363,13 @@ def test_nd2_problems(tmp_path):
     with pytest.raises(FdlcError) as exc:
         read_nd2(tmp_path / "w.nd2", opener=broken)
     one_line_error(exc, "not a readable ND2 file")
-    movie = FakeND2(np.zeros((3, 5, 8, 8), np.uint16), {"T": 3, "Z": 5, "Y": 8, "X": 8}, names=())
+    movie = FakeND2(np.arange(3 * 5 * 8 * 8, dtype=np.uint16).reshape(3, 5, 8, 8), {"T": 3, "Z": 5, "Y": 8, "X": 8}, names=())
     with pytest.raises(FdlcError) as exc:
         read_nd2(tmp_path / "w.nd2", opener=lambda p: movie)
     one_line_error(exc, "time points")
+    series = read_nd2(tmp_path / "w.nd2", opener=lambda p: movie, time=True)
+    assert len(series) == 3
+    np.testing.assert_array_equal(series.volume(1).data[0], movie.asarray()[1])
     flat = FakeND2(np.zeros((2, 8, 8), np.uint16), {"C": 2, "Y": 8, "X": 8}, voxel=(1.0, 1.0, 1.0))
     with pytest.raises(FdlcError) as exc:
         read_nd2(tmp_path / "w.nd2", opener=lambda p: flat)

@@ -1,5 +1,5 @@
 """Readers and writers for image stacks (neuron tables live in :mod:`napari_fdlc.table`)."""
 
-from .images import ImageError, Stack, read_stack
+from .images import ImageError, Stack, StackSeries, read_series, read_stack
 
-__all__ = ["ImageError", "Stack", "read_stack"]
+__all__ = ["ImageError", "Stack", "StackSeries", "read_series", "read_stack"]

@@ -110,6 +110,44 @@ class Stack:
         return np.asarray(self.shape_zyx) * np.asarray(self.voxel_size_zyx)
 
 
+@dataclass
+class StackSeries:
+    """A recording: the same volume over time, T, C, Z, Y, X (numpy or dask: a long recording
+    stays on disk and :meth:`volume` reads one time point at a time). Voxel size, roles and
+    names as in :class:`Stack`, shared by every time point."""
+
+    data: Any
+    voxel_size_zyx: tuple[float, float, float]
+    channel_roles: list[str | None]
+    source: str = "<memory>"
+    channel_names: list[str] | None = None
+
+    def __post_init__(self) -> None:
+        if getattr(self.data, "ndim", None) != 5:
+            raise ImageError(f"{self.source}: a recording must be T, C, Z, Y, X (got {getattr(self.data, 'shape', '?')})")
+        if self.data.shape[0] < 1:
+            raise ImageError(f"{self.source}: the recording has no time point")
+        first = Stack(self.data[0], self.voxel_size_zyx, self.channel_roles, self.source, self.channel_names)
+        self.voxel_size_zyx, self.channel_roles, self.channel_names = (
+            first.voxel_size_zyx, first.channel_roles, first.channel_names)
+
+    def __len__(self) -> int:
+        return int(self.data.shape[0])
+
+    @property
+    def shape_zyx(self) -> tuple[int, int, int]:
+        return tuple(int(s) for s in self.data.shape[2:])
+
+    @property
+    def n_channels(self) -> int:
+        return int(self.data.shape[1])
+
+    def volume(self, t: int) -> Stack:
+        """Time point ``t`` as an in-memory :class:`Stack` (its source says which time point)."""
+        source = self.source if len(self) == 1 else f"{self.source} (t={t})"
+        return Stack(np.asarray(self.data[t]), self.voxel_size_zyx, self.channel_roles, source, self.channel_names)
+
+
 # ---------------------------------------------------------------------------------------------
 # Channel roles
 
@@ -192,6 +230,28 @@ def read_stack(
     ``voxel_size`` (Z, Y, X µm) and ``channels`` (one role per channel) override what the file
     says; ``axes`` (e.g. ``'CZYX'``) names the axes of a TIFF that does not record them.
     """
+    return _read(path, voxel_size, channels, axes, time=False)
+
+
+def read_series(
+    path: str | os.PathLike,
+    voxel_size: Sequence[float] | None = None,
+    channels: Sequence[str | None] | None = None,
+    axes: str | None = None,
+) -> StackSeries:
+    """A recording over time (a T axis; TIFF, OME-TIFF, ImageJ TIFF or ND2) as a
+    :class:`StackSeries`; a file of one volume is a series of one. Arguments as :func:`read_stack`.
+    NWB files hold NeuroPAL's single annotated volume, so they are a series of one."""
+    return _read(path, voxel_size, channels, axes, time=True)
+
+
+def is_image_file(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is an existing file that the readers take (by its first bytes or suffix)."""
+    path = Path(path)
+    return path.is_file() and path.stat().st_size > 0 and _sniff(path) is not None
+
+
+def _read(path, voxel_size, channels, axes, time: bool):
     path = Path(path)
     source = str(path)
     if not path.exists():
@@ -202,13 +262,16 @@ def read_stack(
         raise ImageError(f"{source}: the file is empty")
     kind = _sniff(path)
     if kind == "tiff":
-        return read_tiff(path, voxel_size=voxel_size, channels=channels, axes=axes)
+        return read_tiff(path, voxel_size=voxel_size, channels=channels, axes=axes, time=time)
     if kind == "nwb":
         from .nwb import read_nwb
 
-        return read_nwb(path, voxel_size=voxel_size, channels=channels)
+        stack = read_nwb(path, voxel_size=voxel_size, channels=channels)
+        if not time:
+            return stack
+        return StackSeries(stack.data[None], stack.voxel_size_zyx, stack.channel_roles, stack.source, stack.channel_names)
     if kind == "nd2":
-        return read_nd2(path, voxel_size=voxel_size, channels=channels)
+        return read_nd2(path, voxel_size=voxel_size, channels=channels, time=time)
     raise ImageError(f"{source}: not a supported image file; use TIFF, OME-TIFF, NWB (.nwb) or ND2 (.nd2)")
 
 
@@ -246,8 +309,10 @@ def finish_stack(
     user_voxel_size: Sequence[float] | None = None,
     user_channels: Sequence[str | None] | None = None,
     roles: Sequence[str | None] | None = None,
-) -> Stack:
-    """Bring ``data`` with ``axes`` (letters T, Z, C, Y, X, S, ...) to C, Z, Y, X and validate.
+    time: bool = False,
+) -> Stack | StackSeries:
+    """Bring ``data`` with ``axes`` (letters T, Z, C, Y, X, S, ...) to C, Z, Y, X and validate;
+    with ``time``, to T, C, Z, Y, X as a :class:`StackSeries` (no T axis: a series of one).
 
     ``voxel_size_zyx`` and ``names`` are what the file says (entries may be None); the user's
     values win. ``roles`` are roles the file states directly (NWB ``RGBW_channels``).
@@ -266,7 +331,14 @@ def finish_stack(
         axes = axes.replace("S", "C")
     if "T" in axes:
         n = data.shape[axes.index("T")]
-        raise ImageError(f"{source}: {n} time points; fdlc reads one volume, export a single time point")
+        if not time:
+            raise ImageError(f"{source}: a recording of {n} time points; fdlc segment and fdlc track read it "
+                             "(here one volume is needed: export a single time point)")
+        data = data.transpose([axes.index("T")] + [i for i, a in enumerate(axes) if a != "T"])
+        axes = axes.replace("T", "")
+    elif time:
+        data = data[None]
+    lead = 1 if time else 0  # the T axis in front, kept through the steps below
     if "Z" not in axes:
         raise ImageError(f"{source}: a 2D image (axes {axes}); fdlc needs a 3D stack with several Z planes")
     unknown = [a for a in axes if a not in "CZYX"]
@@ -275,14 +347,14 @@ def finish_stack(
             f"{source}: unknown image axes '{axes}'; give them explicitly, e.g. axes='CZYX' (--axes CZYX)"
         )
     if "C" not in axes:
-        data = data[None]
+        data = data[:, None] if time else data[None]
         axes = "C" + axes
-    data = data.transpose([axes.index(a) for a in "CZYX"])
-    n_channels, nz = int(data.shape[0]), int(data.shape[1])
+    data = data.transpose(list(range(lead)) + [lead + axes.index(a) for a in "CZYX"])
+    n_channels, nz = int(data.shape[lead]), int(data.shape[lead + 1])
     if nz < 2:
         raise ImageError(f"{source}: a 2D image (one Z plane); fdlc needs a 3D stack with several Z planes")
-    if min(data.shape[2:]) < 2:
-        raise ImageError(f"{source}: image of shape {tuple(data.shape)} (C, Z, Y, X) is too small")
+    if min(data.shape[lead + 2:]) < 2:
+        raise ImageError(f"{source}: image of shape {tuple(data.shape[lead:])} (C, Z, Y, X) is too small")
     if not (np.issubdtype(data.dtype, np.integer) or np.issubdtype(data.dtype, np.floating)):
         raise ImageError(f"{source}: pixel type {data.dtype} is not supported; export integer or float pixels")
 
@@ -311,6 +383,8 @@ def finish_stack(
         channel_roles = roles_from_names(names)
     else:
         channel_roles = [None] * n_channels
+    if time:
+        return StackSeries(data, voxel, channel_roles, source, names)
     return Stack(data, voxel, channel_roles, source, names)
 
 
@@ -322,8 +396,9 @@ def read_tiff(
     voxel_size: Sequence[float] | None = None,
     channels: Sequence[str | None] | None = None,
     axes: str | None = None,
-) -> Stack:
-    """TIFF, OME-TIFF or ImageJ hyperstack (tifffile)."""
+    time: bool = False,
+) -> Stack | StackSeries:
+    """TIFF, OME-TIFF or ImageJ hyperstack (tifffile); ``time``: as a :class:`StackSeries`."""
     import tifffile
 
     source = str(path)
@@ -372,7 +447,7 @@ def read_tiff(
                 f"{source}: the TIFF does not say its axes (shape {tuple(data.shape)}); "
                 "give them, e.g. --axes ZCYX (axes='ZCYX')"
             )
-    return finish_stack(data, file_axes, source, voxel, names, voxel_size, channels)
+    return finish_stack(data, file_axes, source, voxel, names, voxel_size, channels, time=time)
 
 
 @contextmanager
@@ -497,8 +572,9 @@ def read_nd2(
     voxel_size: Sequence[float] | None = None,
     channels: Sequence[str | None] | None = None,
     opener: Callable[[str], Any] | None = None,
-) -> Stack:
-    """Nikon ND2 through the ``nd2`` package.
+    time: bool = False,
+) -> Stack | StackSeries:
+    """Nikon ND2 through the ``nd2`` package (``time``: as a :class:`StackSeries`).
 
     ``opener`` (default ``nd2.ND2File``) can be any callable returning an object with ND2File's
     interface (``sizes``, ``voxel_size()``, ``metadata.channels``, ``asarray()``/``to_dask()``,
@@ -544,7 +620,7 @@ def read_nd2(
         f.close()
     if tuple(data.shape) != shape:
         raise ImageError(f"{source}: ND2 data shape {tuple(data.shape)} does not match its sizes {sizes}")
-    return finish_stack(data, axes, source, voxel, names, voxel_size, channels)
+    return finish_stack(data, axes, source, voxel, names, voxel_size, channels, time=time)
 
 
 def _nd2_channel_names(f) -> list[str] | None:
@@ -562,12 +638,13 @@ def _nd2_channel_names(f) -> list[str] | None:
 
 def write_tiff(
     path: str | os.PathLike,
-    stack: Stack,
+    stack: Stack | StackSeries,
     ome: bool = True,
     compression: str | None = "zlib",
     channel_names: Sequence[str] | None = None,
 ) -> None:
-    """Write a stack as OME-TIFF (``ome=True``) or as an ImageJ hyperstack, atomically.
+    """Write a stack (or a recording, with its time axis) as OME-TIFF (``ome=True``) or as an
+    ImageJ hyperstack, atomically.
 
     ImageJ files carry voxel size via resolution + ``spacing``; they are written uncompressed
     because ImageJ itself cannot open compressed hyperstacks.
@@ -577,12 +654,13 @@ def write_tiff(
     from ..errors import atomic_write
 
     data = np.asarray(stack.data)
+    time = "T" if data.ndim == 5 else ""
     names = list(channel_names or stack.channel_names or [r or "" for r in stack.channel_roles])
     z, y, x = stack.voxel_size_zyx
     buffer = io.BytesIO()  # tifffile wants a named file or a seekable buffer, not a bare fd
     if ome:
         metadata = {
-            "axes": "CZYX",
+            "axes": time + "CZYX",
             "PhysicalSizeZ": z, "PhysicalSizeZUnit": "µm",
             "PhysicalSizeY": y, "PhysicalSizeYUnit": "µm",
             "PhysicalSizeX": x, "PhysicalSizeXUnit": "µm",
@@ -590,11 +668,12 @@ def write_tiff(
         }
         tifffile.imwrite(buffer, data, ome=True, metadata=metadata, compression=compression)
     else:
-        hyper = np.ascontiguousarray(data.transpose(1, 0, 2, 3))  # ImageJ wants Z, C, Y, X
-        labels = [names[c] for _ in range(hyper.shape[0]) for c in range(hyper.shape[1])]
+        hyper = np.ascontiguousarray(np.swapaxes(data, -4, -3))  # ImageJ wants (T,) Z, C, Y, X
+        planes = int(np.prod(hyper.shape[:-3]))
+        labels = [names[c] for _ in range(planes) for c in range(hyper.shape[-3])]
         tifffile.imwrite(
             buffer, hyper, imagej=True, resolution=(1.0 / x, 1.0 / y),
-            metadata={"axes": "ZCYX", "spacing": z, "unit": "um", "Labels": labels},
+            metadata={"axes": time + "ZCYX", "spacing": z, "unit": "um", "Labels": labels},
         )
     with atomic_write(path, "wb") as out:
         out.write(buffer.getbuffer())
