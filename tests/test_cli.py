@@ -387,3 +387,51 @@ def test_a_view_into_the_body_says_how_many_neurons_get_no_name(tmp_path, worm, 
     assert len(err) == 1 and "wider.csv" in err[0] and "beyond the head" in err[0], err
     out = pd.read_csv(tmp_path / "o.csv", keep_default_na=False)
     assert (out["auto_id"].iloc[len(worm):] == "").mean() > 0.5
+
+
+@pytest.mark.parametrize("case", ["simulate_seed", "atlas_frequency", "evaluate_pairs", "train_steps", "train_cuda",
+                                  "segment_over_its_stack", "track_over_its_recording", "track_into_its_folder",
+                                  "label_a_recording", "label_empty_out", "simulate_into_a_file"])
+def test_bad_values_are_one_line_before_any_work(tmp_path, table_files, capsys, case):
+    test, template = table_files
+    recording = tmp_path / "recording.csv"
+    frame = pd.read_csv(test)
+    write_table(pd.concat([frame.assign(t=0), frame.assign(t=1)], ignore_index=True), recording)
+    folder = tmp_path / "volumes"
+    folder.mkdir()
+    write_table(frame, folder / "v0.csv")
+    stack = tmp_path / "stack.tif"
+    stack.write_bytes(b"II*\x00" + bytes(100))
+    if case == "train_cuda":
+        import torch
+
+        if torch.cuda.is_available():
+            pytest.skip("CUDA is present here")
+    args = {
+        "simulate_seed": ["simulate", test, "--seed", "-1", "--out", tmp_path / "s"],
+        "atlas_frequency": ["atlas", "--min-frequency", "2", "--out", tmp_path / "a.csv"],
+        "evaluate_pairs": ["evaluate", "--pairs-per-lab", "-1", "--out", tmp_path / "e.md"],
+        "train_steps": ["train", "--steps", "0", "--out", tmp_path / "m"],
+        "train_cuda": ["train", "--device", "cuda", "--out", tmp_path / "m"],
+        "segment_over_its_stack": ["segment", stack, "--out", stack],
+        "track_over_its_recording": ["track", recording, "--out", recording],
+        "track_into_its_folder": ["track", folder, "--out", folder / "tracks.csv"],
+        "label_a_recording": ["label", recording, "--out", tmp_path / "ids.csv"],
+        "label_empty_out": ["label", test, "--out", ""],
+        "simulate_into_a_file": ["simulate", test, "--out", template],
+    }[case]
+    before = {p: p.read_bytes() for p in (test, template, recording, stack, folder / "v0.csv")}
+    assert run(*args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and err[-1].startswith("fdlc: error:") and "Traceback" not in "".join(err), err
+    assert {p: p.read_bytes() for p in before} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["recording.csv", "stack.tif", "template.csv", "test.csv", "volumes"]
+    assert [p.name for p in folder.iterdir()] == ["v0.csv"]
+
+
+def test_a_folder_where_one_answer_goes_is_refused_before_any_answer_is_written(tmp_path, table_files, untrained_weights, capsys):
+    test, template = table_files
+    (tmp_path / "ids" / "test.csv").mkdir(parents=True)
+    assert run("label", test, template, "--weights", untrained_weights, "--out", tmp_path / "ids") == 2
+    assert "is a folder" in capsys.readouterr().err
+    assert [p.name for p in (tmp_path / "ids").iterdir()] == ["test.csv"]

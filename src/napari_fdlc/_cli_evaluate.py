@@ -34,6 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    for flag in ("pairs_per_lab", "panel_worms_per_lab", "synthetic_pairs"):
+        if getattr(args, flag) < 0:
+            raise FdlcError(f"--{flag.replace('_', '-')} must be 0 or more (got {getattr(args, flag)})")
     report = evaluate_corpus(
         corpus=args.corpus, labs=args.labs, weights=args.weights, pairs_per_lab=args.pairs_per_lab,
         panel_worms_per_lab=args.panel_worms_per_lab, synthetic_pairs=args.synthetic_pairs,

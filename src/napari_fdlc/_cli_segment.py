@@ -10,7 +10,7 @@ import argparse
 import sys
 import time
 
-from .errors import FdlcError, warn
+from .errors import FdlcError, check_output, warn
 
 _LONG_VOXELS = 20_000_000  # above this, print progress lines (a few seconds of work)
 
@@ -99,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
     from .track import join_by_time
 
     try:
+        check_output(args.out, [args.stack], create_folder=True)
         times, tables = segment_recording(args, args.stack, "fdlc segment")
         write_table(tables[0] if times == [0] else join_by_time(tables, times), args.out)
     except FdlcError as exc:

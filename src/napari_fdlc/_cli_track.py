@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import FdlcError
+from .errors import FdlcError, check_output
 from .geometry import CHIRALITIES
 
 
@@ -62,11 +62,7 @@ def run(args: argparse.Namespace) -> int:
     settings = TrackSettings(search=args.search, placement=args.placement, refine_steps=args.refine_steps,
                              chunk=args.chunk, use_colour=not args.no_colour, follow_with=args.follow_with)
     settings.check()
-    out = Path(args.out)
-    if out.is_dir():
-        raise FdlcError(f"{out}: --out must be a CSV file, not a folder")
-    if not out.parent.exists():
-        raise FdlcError(f"{out}: the folder {out.parent} does not exist")
+    out = check_output(args.out, [*args.inputs, *args.reference])
     if args.threads is not None and args.threads < 1:
         raise FdlcError(f"--threads must be at least 1 (got {args.threads})")
     # Validate every input before any model work (the references before a recording's segmentation).

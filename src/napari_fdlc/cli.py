@@ -83,8 +83,12 @@ def _run_simulate(args) -> int:
 
     if args.count < 1:
         raise FdlcError("--count must be at least 1")
-    table = read_table(args.table)
+    if args.seed < 0:
+        raise FdlcError(f"--seed must be 0 or more (got {args.seed})")
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise FdlcError(f"{out}: --out must be a folder (it receives <stem>_synN.csv), not a file")
+    table = read_table(args.table)
     rng = np.random.default_rng(args.seed)
     for k in range(args.count):
         synth = simulate_worm(table, rng)
@@ -146,9 +150,9 @@ def _run_train(args) -> int:
         cfg.train_labs = tuple(args.train_labs)
     if args.val_labs:
         cfg.val_labs = tuple(args.val_labs)
-    if args.steps:
+    if args.steps is not None:
         cfg.steps = args.steps
-    if args.batch_size:
+    if args.batch_size is not None:
         cfg.batch_size = args.batch_size
     cfg.check()
     if args.calibrate_only and cfg.task != "identify":
@@ -203,6 +207,8 @@ def _run_atlas(args) -> int:
     from .corpus import load_corpus
     from .reference import build_atlas
 
+    if not 0 < args.min_frequency <= 1:
+        raise FdlcError(f"--min-frequency must be a fraction of worms in (0, 1] (got {args.min_frequency})")
     atlas = build_atlas(load_corpus(args.corpus, args.labs), min_frequency=args.min_frequency)
     atlas.save(args.out)
     print(f"{len(atlas.names)} names from {atlas.worms} worms of {', '.join(atlas.labs)} -> {args.out}")

@@ -47,6 +47,9 @@ def load_corpus(path: str | os.PathLike | None = None, labs: tuple[str, ...] | l
             "NeuroPAL corpus not found: pass --corpus PATH (the folder with worms.csv) or set FDLC_CORPUS"
         )
     index = pd.read_csv(path / "worms.csv", dtype=str)
+    unknown = sorted(set(labs or ()) - set(index["dataset"]))
+    if unknown:
+        raise FdlcError(f"no worms of lab(s) {', '.join(unknown)} in the corpus (labs: {', '.join(sorted(set(index['dataset'])))})")
     worms = []
     for row in index.itertuples():
         if labs is not None and row.dataset not in labs:

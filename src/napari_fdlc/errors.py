@@ -31,6 +31,37 @@ def warn(message: str) -> None:
     print(f"fdlc: warning: {message}", file=sys.stderr, flush=True)
 
 
+def check_output(out: str | os.PathLike, inputs=(), create_folder: bool = False) -> Path:
+    """The output file ``out``, refused before any work when it cannot be a file written there:
+    an existing folder (or a path ending in a separator), a parent that is a file or (unless
+    ``create_folder``) missing, a folder without write permission, or one of the ``inputs``
+    (files read; a folder given as input stands for the files in it)."""
+    text = str(out)
+    path = Path(out)
+    if not text or path.is_dir() or text.endswith(("/", os.sep)):
+        raise FdlcError(f"{text or '--out'}: --out must be a file, not a folder")
+    existing = next(p for p in path.parents if p.exists() or p == Path(p.anchor or "."))
+    if not existing.is_dir():
+        raise FdlcError(f"{out}: {existing} is a file, not a folder")
+    if existing != path.parent and not create_folder:
+        raise FdlcError(f"{out}: the folder {path.parent} does not exist")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise FdlcError(f"{out}: cannot write in {existing} (permission denied)")
+    if replaces_input(path, inputs):
+        raise FdlcError(f"{out}: --out would replace an input file; choose another output")
+    return path
+
+
+def replaces_input(path: str | os.PathLike, inputs) -> bool:
+    """Whether writing ``path`` would replace one of the ``inputs`` (a folder: the files in it)."""
+    target = Path(path).resolve()
+    for given in inputs:
+        given = Path(given)
+        if given.resolve() == target or (given.is_dir() and target.parent == given.resolve()):
+            return True
+    return False
+
+
 @contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs):
     """Open a temporary file beside ``path``; rename it over ``path`` only if the block succeeds.

@@ -109,6 +109,8 @@ def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
     from .geometry import canonical_frame, mirrored_by_names
     from .reference import load_atlas
 
+    if reference is not None and not reference.named.any():
+        raise FdlcError(f"{reference.source}: the reference has no named neuron (a 'label' column with names is needed)")
     if reference is None:
         atlas = load_atlas()
         names, xyz = atlas.names, atlas.mean

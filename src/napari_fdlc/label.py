@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .errors import FdlcError, warn
+from .errors import FdlcError, replaces_input, warn
 from .identify import (ADAPT_MIN_TESTS, FEW_NEURONS, Identifier, can_adapt_colours, colour_note, default_identifier,
                        harmonise, label_neurons, smaller_worm_note)
 from .match import Labelling, make_labelling, name_probabilities
@@ -44,9 +44,21 @@ def labelling_frame(test: NeuronTable, result: Labelling, top_k: int = 3) -> pd.
     return pd.DataFrame(columns)
 
 
+def _refuse_recording(table) -> None:
+    """A table of several time points (a ``t`` column, as ``fdlc segment`` writes for a
+    recording) is many volumes of one worm, not one worm: naming it whole would mix them."""
+    if table.text is not None and "t" in table.text.columns:
+        times = table.text["t"].astype(str).str.strip().nunique()
+        if times > 1:
+            raise FdlcError(f"{table.source}: a recording of {times} time points (a 't' column); fdlc label names one "
+                            "volume: give one time point, or follow them all with fdlc track --reference")
+
+
 def _output_paths(tests: list[str], out: str, inputs: list[str]) -> list[Path]:
     """Where each test's answer goes, refused before any work when it cannot be written there
     or would replace one of the ``inputs``."""
+    if not out:
+        raise FdlcError("--out is empty: give an output file (one test) or folder (several tests)")
     stems = [Path(t).stem for t in tests]
     seen = set()
     for stem in stems:
@@ -66,9 +78,10 @@ def _output_paths(tests: list[str], out: str, inputs: list[str]) -> list[Path]:
         raise FdlcError(f"{out}: the folder {folder} does not exist")
     if not os.access(existing, os.W_OK | os.X_OK):
         raise FdlcError(f"{out}: cannot write in {existing} (permission denied)")
-    read = {Path(p).resolve() for p in inputs}
     for path in paths:
-        if path.resolve() in read:
+        if path.is_dir():
+            raise FdlcError(f"{path}: is a folder; the answer for that test cannot be written there")
+        if replaces_input(path, inputs):
             raise FdlcError(f"{path}: --out would replace an input table; choose another output")
     return paths
 
@@ -105,6 +118,8 @@ def label_files(
     # Validate everything before any work or any write.
     test_tables = [read_table(t, names=False) for t in tests]  # a test's names are not used
     template_tables = [read_table(t) for t in (templates or [])]
+    for t in [*test_tables, *template_tables]:
+        _refuse_recording(t)
     for t in template_tables:
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron (a 'label' column with names is needed)")

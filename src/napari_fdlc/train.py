@@ -103,6 +103,19 @@ class TrainConfig:
     def check(self) -> None:
         if self.task not in TASKS:
             raise FdlcError(f"unknown training task '{self.task}' (use {' or '.join(TASKS)})")
+        for name in ("steps", "batch_size", "eval_every", "val_pairs_per_lab", "stop_at", "threads"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise FdlcError(f"--{name.replace('_', '-')} must be at least 1 (got {value})")
+        if self.workers < 0:
+            raise FdlcError(f"--workers must be 0 or more (got {self.workers})")
+        if self.time_limit_min is not None and not self.time_limit_min > 0:
+            raise FdlcError(f"--minutes must be a positive number (got {self.time_limit_min})")
+        if self.device and self.device.startswith("cuda"):
+            import torch
+
+            if not torch.cuda.is_available():
+                raise FdlcError(f"--device {self.device}: no CUDA device here (torch sees none); use --device cpu")
 
     @classmethod
     def from_json(cls, path: str | Path) -> "TrainConfig":

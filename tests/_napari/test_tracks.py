@@ -117,3 +117,42 @@ def test_the_models_warm_up_while_the_user_picks_the_files(make_napari_viewer, i
     widget._warming.join(timeout=60)
     assert not widget._warming.is_alive()
     assert identifier._traced and default_tracker()._traced  # both models ran before the first job
+
+
+def test_a_recording_in_the_viewer_is_segmented_then_tracked(track_widget, recording):
+    """A stack file with a time axis opens as t, z, y, x layers; the widget segments every time
+    point in its worker and tracks the detections, and the layers overlay the image."""
+    from scipy.spatial import cKDTree
+
+    from napari_fdlc._napari._io import read_stack_layers
+
+    viewer, widget = track_widget
+    path, truths, origins = recording
+    for data, kwargs, kind in read_stack_layers(str(path)):
+        getattr(viewer, f"add_{kind}")(data, **kwargs)
+    image = viewer.layers[0]
+    assert image.data.ndim == 4 and image.scale[0] == 1 and len(viewer.layers) == 4
+    assert widget.source_combo.currentText() == "recording: recording"  # offered first
+    widget.set_recording(str(path))  # by its file (or its name)
+    tracks, points = widget.run()
+    assert widget.last_error is None, widget.last_error
+    assert "3 time points" in widget.status.text()
+    # one time point of the image per volume; points in µm overlay the image's µm
+    t = points.data[:, 0]
+    assert set(np.unique(t)) == {0, 1, 2}
+    for k, truth in enumerate(truths):
+        zyx = points.data[t == k, 1:]
+        distance, _ = cKDTree(truth.xyz[:, ::-1]).query(zyx)
+        assert np.median(distance) < 0.5
+    assert (points.features["track_id"] >= 0).mean() >= 0.9
+    # a table sequence file is still a choice, and choosing one switches to it
+    assert widget.source_combo.findText("the sequence file below") >= 0
+
+
+def test_no_recording_and_no_sequence_is_one_line(track_widget):
+    viewer, widget = track_widget
+    assert widget.source_combo.currentText() == "the sequence file below"
+    assert widget.run() is None
+    assert "choose a recording or a sequence" in widget.last_error and "\n" not in widget.last_error
+    with pytest.raises(Exception, match="no recording"):
+        widget.set_recording("nothing.tif")

@@ -45,10 +45,15 @@ def get_stack_reader(path):
 
 
 def read_stack_layers(path) -> list[tuple]:
-    from ..io.images import read_stack
+    """A stack's channels as image layers (a recording's as t, z, y, x layers), with the
+    annotated neurons of an NWB file and a saved Auto-label session."""
+    from ..io.images import Stack, read_series
 
     p = _one_path(path)
-    stack = read_stack(p)
+    series = read_series(p)
+    if len(series) > 1:
+        return stack_layers(series)
+    stack = Stack(series.data[0], series.voxel_size_zyx, series.channel_roles, series.source, series.channel_names)
     layers = stack_layers(stack)
     if p.lower().endswith(".nwb"):
         neurons = _nwb_neurons(p, stack)

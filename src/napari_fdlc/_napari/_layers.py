@@ -55,28 +55,88 @@ def contrast_limits(channel) -> tuple[float, float]:
 
 
 def stack_layers(stack, name: str | None = None, source_key: str | None = None) -> list[tuple]:
-    """One image layer per channel: R/G/B/W colormaps, additive, gamma 0.7, µm scale."""
+    """One image layer per channel: R/G/B/W colormaps, additive, gamma 0.7, µm scale. A
+    recording (:class:`~napari_fdlc.io.images.StackSeries`) gives t, z, y, x layers (time in
+    volumes, scale 1), which the Track widget segments and tracks."""
     base = name or _short_name(stack.source)
     key = source_key or stack.source
+    recording = stack.data.ndim == 5
     layers = []
     for i, role in enumerate(stack.channel_roles):
-        channel = stack.data[i]
+        channel = stack.data[:, i] if recording else stack.data[i]
         label = stack.channel_names[i] if stack.channel_names else (role or f"channel {i}")
         kwargs = {
             "name": f"{base} [{role or label}]",
-            "scale": tuple(stack.voxel_size_zyx),
+            "scale": (1.0,) * recording + tuple(stack.voxel_size_zyx),
             "colormap": ROLE_COLORMAP.get(role, "gray"),
             "blending": "additive",
             "gamma": GAMMA,
-            "contrast_limits": contrast_limits(channel),
+            "contrast_limits": contrast_limits(channel[0] if recording else channel),
             "visible": role != "GFP",
             # the pan-neuronal W is in every nucleus: at half opacity the colour code stays readable
             "opacity": 0.5 if role == "W" else 1.0,
-            "axis_labels": ("z", "y", "x"),
+            "axis_labels": ("t",) * recording + ("z", "y", "x"),
             "metadata": {META_KEY: {"image": key, "role": role, "channel_name": label, "stack_name": base}},
         }
         layers.append((channel, kwargs, "image"))
     return layers
+
+
+def is_image_layer(layer) -> bool:
+    return type(layer).__name__ == "Image" and getattr(layer, "ndim", 0) >= 3 and not getattr(layer, "rgb", False)
+
+
+def layer_role(layer, roles=("R", "G", "B", "W")) -> str | None:
+    """The channel role of an image layer among ``roles``: from napari-fdlc's metadata, a
+    ``[R]``-style tag or a fluorophore in its name, else its colormap."""
+    meta = (layer.metadata or {}).get(META_KEY) or {}
+    if meta.get("role") in roles:
+        return meta["role"]
+    name = layer.name
+    if name.endswith("]") and "[" in name:
+        tag = name[name.rindex("[") + 1 : -1].strip().upper()
+        if tag in roles:
+            return tag
+    from ..io.images import role_from_name
+
+    role = role_from_name(name)
+    if role in roles:
+        return role
+    cmap = getattr(getattr(layer, "colormap", None), "name", "")
+    role = {"red": "R", "green": "G", "blue": "B", "gray": "W", "grey": "W"}.get(cmap)
+    return role if role in roles else None
+
+
+def stack_from_layers(images: dict, source: str, recording: bool = False):
+    """A :class:`~napari_fdlc.io.images.Stack` from image layers, one per channel role
+    (``{"W": layer, ...}``), which must share their shape and voxel size (layer scale); a layer
+    with axes before z, y, x gives its first volume. With ``recording``, a
+    :class:`~napari_fdlc.io.images.StackSeries` of t, z, y, x layers. Lazy (dask) layers stay lazy."""
+    from ..io.images import Stack, StackSeries
+
+    if not images:
+        raise FdlcError("no image chosen: pick the image layer of at least one channel (W to detect nuclei)")
+    layers = list(images.values())
+    axes = 4 if recording else 3
+    if any(layer.data.ndim < axes for layer in layers):
+        raise FdlcError("the chosen image layers must be recordings (t, z, y, x)" if recording
+                        else "the chosen image layers must be 3D stacks (z, y, x)")
+    shapes = {tuple(layer.data.shape[-axes:]) for layer in layers}
+    if len(shapes) != 1:
+        raise FdlcError(f"the chosen channels differ in shape ({', '.join(map(str, sorted(shapes)))}); choose channels of one stack")
+    scales = {tuple(np.round(np.asarray(layer.scale[-3:], dtype=float), 9)) for layer in layers}
+    if len(scales) != 1:
+        raise FdlcError("the chosen channels have different voxel sizes (layer scale); choose channels of one stack")
+    arrays = [layer.data[(0,) * (layer.data.ndim - axes)] for layer in layers]
+    if all(isinstance(a, np.ndarray) for a in arrays):
+        data = np.stack(arrays, axis=axes - 3)
+    else:
+        import dask.array as da
+
+        data = da.stack([da.asarray(a) for a in arrays], axis=axes - 3)
+    kind = StackSeries if recording else Stack
+    return kind(data, tuple(float(v) for v in layers[0].scale[-3:]), list(images.keys()), source=source,
+                channel_names=[layer.name for layer in layers])
 
 
 def _short_name(source: str) -> str:

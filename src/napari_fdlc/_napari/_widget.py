@@ -73,11 +73,14 @@ from ._layers import (
     META_KEY,
     STATUS_HEX,
     _short_name,
+    is_image_layer,
+    layer_role,
     named_count,
     points_coordinates,
     review_colours,
     review_features,
     review_points,
+    stack_from_layers,
     table_from_layer,
 )
 from ._warm_up import start_warm_up
@@ -453,7 +456,7 @@ class AutoLabelWidget(QWidget):
         meta = (layer.metadata or {}).get(META_KEY) or {}
         if _is_points(layer) and meta.get("session"):
             self._gui(self._adopt, layer)
-        elif _is_image(layer):
+        elif is_image_layer(layer):
             # after the reader's other layers (a restored session layer comes right after)
             QTimer.singleShot(0, lambda: self._restore_for_image(layer))
 
@@ -490,7 +493,7 @@ class AutoLabelWidget(QWidget):
     # =========================================================================================
     # choices in the combo boxes
     def _refresh_choices(self, *_) -> None:
-        images = [layer for layer in self.viewer.layers if _is_image(layer)]
+        images = [layer for layer in self.viewer.layers if is_image_layer(layer)]
         points = [layer for layer in self.viewer.layers if _is_points(layer)]
         with self._guarded():
             for role, combo in self.role_combos.items():
@@ -500,7 +503,7 @@ class AutoLabelWidget(QWidget):
                 combo.addItems([layer.name for layer in images])
                 guess = current if current in [layer.name for layer in images] else None
                 if guess is None:
-                    guess = next((layer.name for layer in images if _layer_role(layer) == role), NONE)
+                    guess = next((layer.name for layer in images if layer_role(layer) == role), NONE)
                 combo.setCurrentText(guess)
             current = self.neurons_combo.currentText()
             self.neurons_combo.clear()
@@ -610,34 +613,8 @@ class AutoLabelWidget(QWidget):
         return out
 
     def _make_stack(self, images: dict[str, object]):
-        from ..io.images import Stack
-
-        if not images:
-            raise FdlcError("no image chosen: pick the image layer of at least one channel (W to detect nuclei)")
-        layers = list(images.values())
-        shapes = {tuple(layer.data.shape[-3:]) for layer in layers}
-        if any(layer.data.ndim < 3 for layer in layers):
-            raise FdlcError("the chosen image layers must be 3D stacks (z, y, x)")
-        if len(shapes) != 1:
-            raise FdlcError(f"the chosen channels differ in shape ({', '.join(map(str, sorted(shapes)))}); choose channels of one stack")
-        scales = {tuple(np.round(np.asarray(layer.scale[-3:], dtype=float), 9)) for layer in layers}
-        if len(scales) != 1:
-            raise FdlcError("the chosen channels have different voxel sizes (layer scale); choose channels of one stack")
-        arrays = [layer.data if layer.data.ndim == 3 else layer.data[(0,) * (layer.data.ndim - 3)] for layer in layers]
-        if all(isinstance(a, np.ndarray) for a in arrays):
-            data = np.stack(arrays)
-        else:
-            import dask.array as da
-
-            data = da.stack([da.asarray(a) for a in arrays])
-        key_layer = images.get("W") or layers[0]
-        return Stack(
-            data,
-            tuple(float(v) for v in layers[0].scale[-3:]),
-            list(images.keys()),
-            source=image_key_of(key_layer),
-            channel_names=[layer.name for layer in layers],
-        )
+        key_layer = images.get("W") or next(iter(images.values()), None)
+        return stack_from_layers(images, image_key_of(key_layer) if key_layer is not None else "")
 
     def _templates(self):
         """(templates or None for the built-in panel, description)."""
@@ -1446,27 +1423,5 @@ def _combo() -> QComboBox:
     return combo
 
 
-def _is_image(layer) -> bool:
-    return type(layer).__name__ == "Image" and getattr(layer, "ndim", 0) >= 3 and not getattr(layer, "rgb", False)
-
-
 def _is_points(layer) -> bool:
     return type(layer).__name__ == "Points"
-
-
-def _layer_role(layer) -> str | None:
-    meta = (layer.metadata or {}).get(META_KEY) or {}
-    if meta.get("role") in ROLES:
-        return meta["role"]
-    name = layer.name
-    if name.endswith("]") and "[" in name:
-        tag = name[name.rindex("[") + 1 : -1].strip().upper()
-        if tag in ROLES:
-            return tag
-    from ..io.images import role_from_name
-
-    role = role_from_name(name)
-    if role in ROLES:
-        return role
-    cmap = getattr(getattr(layer, "colormap", None), "name", "")
-    return {"red": "R", "green": "G", "blue": "B", "gray": "W", "grey": "W"}.get(cmap)

@@ -1,9 +1,14 @@
 """The Track dock widget: neurons of a recording over time, as napari Tracks plus labelled Points.
 
-Pick a sequence (one neuron table with a ``t`` column, or a folder of neuron tables) and,
-optionally, a reference volume (labelled: tracks get its names; default: the first time point),
-then *Track*. The core (:func:`napari_fdlc.track.track`) runs in a ``thread_worker``; the
-progress bar follows it. Two layers come back, in µm (scale 1), with time as the first axis:
+Pick the neurons' source — a recording open in the viewer (t, z, y, x image layers, e.g. a
+TIFF / OME-TIFF / ND2 file with a time axis opened with napari-fdlc: every time point is
+segmented first, as ``fdlc segment`` does) or a sequence file (one neuron table with a ``t``
+column, or a folder of neuron tables) — and, optionally, a reference volume (labelled: tracks
+get its names; default: the first time point), then *Track*. The core
+(:func:`napari_fdlc.segment.segment_series`, :func:`napari_fdlc.track.track`) runs in a
+``thread_worker``; the progress bar follows it. Two layers come back, in µm (scale 1; a
+recording's image layers have scale 1 in t and their voxel size in z, y, x, so they overlay),
+with time as the first axis:
 
 * ``<name> tracks`` — a Tracks layer, one track per reference neuron (track ID = its row);
 * ``<name> neurons`` — a Points layer of every neuron at the current time point (napari slices
@@ -18,6 +23,7 @@ Scripting::
     w.identifier = my_identifier         # default: the shipped model
     w.set_sequence("recording.csv"); w.set_reference("labelled_t0.csv")
     w.run()                               # returns when the layers are in (wait=False: at once)
+    w.set_recording("recording.ome.tif")  # or the image layers of a recording (its file or layer name)
 """
 
 from __future__ import annotations
@@ -30,6 +36,8 @@ import numpy as np
 from qtpy.QtCore import QEventLoop, QObject, QTimer, Signal
 from qtpy.QtWidgets import (
     QCheckBox,
+    QComboBox,
+    QDoubleSpinBox,
     QFileDialog,
     QFormLayout,
     QHBoxLayout,
@@ -42,30 +50,39 @@ from qtpy.QtWidgets import (
 )
 
 from ..errors import FdlcError
+from ._io import image_key_of
+from ._layers import META_KEY, _short_name, is_image_layer, layer_role, stack_from_layers
 from ._warm_up import start_warm_up
+
+SEQUENCE_FILE = "the sequence file below"
+RECORDING_ROLES = ("R", "G", "B", "W", "GFP")
 
 if TYPE_CHECKING:  # pragma: no cover
     import napari
 
 
 class _Signals(QObject):
-    progress = Signal(int, int)  # emitted from the worker thread, delivered on the GUI thread
+    # (what is being done, volumes done, of how many): emitted from the worker thread, delivered
+    # on the GUI thread
+    progress = Signal(str, int, int)
 
 
-def track_layers(result, sequence, name: str = "sequence") -> list[tuple]:
+def track_layers(result, sequence, name: str = "sequence", frames: list[int] | None = None) -> list[tuple]:
     """napari layer data tuples ``(data, kwargs, type)`` for a :class:`TrackResult`: Tracks of
-    the tracked neurons and Points of all neurons, time (volume index) first, then z, y, x in µm."""
+    the tracked neurons and Points of all neurons, time first, then z, y, x in µm. Time is each
+    volume's index in ``sequence`` or, for a recording's volumes, ``frames`` (its time points)."""
+    frames = list(range(len(sequence))) if frames is None else frames
     rows, points, feats = [], [], {"t": [], "track_id": [], "track_conf": [], "name": []}
     for k, (vol, tid, conf) in enumerate(zip(sequence.volumes, result.track_id, result.confidence)):
         zyx = vol.xyz[:, ::-1]
-        points.append(np.column_stack([np.full(len(vol), k), zyx]))
+        points.append(np.column_stack([np.full(len(vol), frames[k]), zyx]))
         names = [result.names[i] if i >= 0 else "" for i in tid]
         feats["t"].extend([sequence.times[k]] * len(vol))
         feats["track_id"].extend(tid.tolist())
         feats["track_conf"].extend(conf.tolist())
         feats["name"].extend(names)
         tracked = tid >= 0
-        rows.append(np.column_stack([tid[tracked], np.full(tracked.sum(), k), zyx[tracked]]))
+        rows.append(np.column_stack([tid[tracked], np.full(tracked.sum(), frames[k]), zyx[tracked]]))
     data = np.vstack(rows) if rows else np.zeros((0, 5))
     data = data[np.lexsort((data[:, 1], data[:, 0]))]  # napari wants tracks sorted by ID, then time
     track_names = {int(i): n for i, n in enumerate(result.names)}
@@ -136,6 +153,17 @@ class TrackWidget(QWidget):
     def _build_ui(self) -> None:
         layout = QVBoxLayout(self)
         form = QFormLayout()
+        self.source_combo = QComboBox()
+        self.source_combo.setToolTip("a recording open in the viewer (t, z, y, x image layers: segmented first), "
+                                     "or the sequence of neuron tables chosen below")
+        form.addRow("Neurons from", self.source_combo)
+        self.diameter_spin = QDoubleSpinBox()
+        self.diameter_spin.setRange(0.5, 20.0)
+        self.diameter_spin.setSingleStep(0.25)
+        self.diameter_spin.setValue(3.0)
+        self.diameter_spin.setSuffix(" µm")
+        self.diameter_spin.setToolTip("typical nucleus diameter, for segmenting a recording")
+        form.addRow("Nucleus diameter", self.diameter_spin)
         self.sequence_edit = QLineEdit()
         self.sequence_edit.setPlaceholderText("CSV with a t column, or a folder of CSVs")
         form.addRow("Sequence", self._with_browse(self.sequence_edit, self._browse_sequence))
@@ -157,6 +185,39 @@ class TrackWidget(QWidget):
         self.status.setWordWrap(True)
         layout.addWidget(self.status)
         layout.addStretch(1)
+        self._refresh_recordings()
+        for event in (self.viewer.layers.events.inserted, self.viewer.layers.events.removed):
+            event.connect(self._refresh_recordings)
+
+    def _recordings(self) -> dict[str, dict[str, object]]:
+        """The recordings in the viewer: {name shown: {role: layer}}, from t, z, y, x image
+        layers grouped by the file they came from (a layer of its own without a known role is
+        taken as W, the channel nuclei are found in)."""
+        groups: dict[str, list] = {}
+        for layer in self.viewer.layers:
+            if is_image_layer(layer) and layer.data.ndim == 4:
+                groups.setdefault(image_key_of(layer), []).append(layer)
+        out = {}
+        for key, layers in groups.items():
+            channels: dict[str, object] = {}
+            for layer in layers:
+                role = layer_role(layer, RECORDING_ROLES) or ("W" if len(layers) == 1 else None)
+                if role is not None and role not in channels:
+                    channels[role] = layer
+            if channels:
+                meta = (layers[0].metadata or {}).get(META_KEY) or {}
+                name = meta.get("stack_name") or (_short_name(key) if len(layers) > 1 else layers[0].name)
+                out[f"recording: {name}"] = channels
+        return out
+
+    def _refresh_recordings(self, *_) -> None:
+        current = self.source_combo.currentText()
+        self.source_combo.blockSignals(True)
+        self.source_combo.clear()
+        self.source_combo.addItems([*self._recordings(), SEQUENCE_FILE])
+        if self.source_combo.findText(current) >= 0 and not (current == SEQUENCE_FILE and not self.sequence_edit.text()):
+            self.source_combo.setCurrentText(current)  # else a recording, when there is one, comes first
+        self.source_combo.blockSignals(False)
 
     def _with_browse(self, edit: QLineEdit, browse) -> QWidget:
         box = QWidget()
@@ -182,7 +243,18 @@ class TrackWidget(QWidget):
     # ------------------------------------------------------------------------------------------
     # Scripting interface
     def set_sequence(self, path) -> None:
+        """Track the neuron tables of ``path`` (a CSV with a t column, or a folder of CSVs)."""
         self.sequence_edit.setText(str(path))
+        self.source_combo.setCurrentText(SEQUENCE_FILE)
+
+    def set_recording(self, name: str) -> None:
+        """Track the recording open in the viewer whose file (or layer) is ``name``."""
+        self._refresh_recordings()
+        matches = [t for t in self._recordings() if t == name or t == f"recording: {name}"
+                   or t == f"recording: {_short_name(str(name))}"]
+        if not matches:
+            raise FdlcError(f"no recording '{name}' in the viewer (open a stack with a time axis)")
+        self.source_combo.setCurrentText(matches[0])
 
     def set_reference(self, path) -> None:
         self.reference_edit.setText("" if path is None else str(path))
@@ -205,16 +277,40 @@ class TrackWidget(QWidget):
         use_colour = self.colour_check.isChecked()
         identifier = self.identifier
         signals, warming = self._signals, self._warming
+        source = self.source_combo.currentText()
+        recording = name = None
+        if source != SEQUENCE_FILE:
+            try:
+                channels = self._recordings().get(source)
+                if channels is None:
+                    raise FdlcError(f"the recording '{source}' is no longer in the viewer")
+                key_layer = channels.get("W") or next(iter(channels.values()))
+                recording = stack_from_layers(channels, image_key_of(key_layer), recording=True)
+            except FdlcError as exc:
+                self._error(str(exc))
+                return None
+            name = source[len("recording: "):]
+        diameter = float(self.diameter_spin.value())
 
         @thread_worker(start_thread=False, ignore_errors=True)
         def work():
             from ..table import read_table
-            from ..track import TrackSettings, read_sequence, track
+            from ..track import Sequence, TrackSettings, read_sequence, track
 
-            if not sequence_path:
-                raise FdlcError("choose a sequence first (a CSV with a t column, or a folder of CSVs)")
-            sequence = read_sequence([sequence_path])
             references = [read_table(reference_path)] if reference_path else None
+            if recording is not None:
+                from ..segment import segment_series
+
+                tables = segment_series(recording, diameter,
+                                        progress=lambda done, total: signals.progress.emit("segmenting", done, total))
+                frames = [t for t, table in enumerate(tables) if len(table)]
+                if not frames:
+                    raise FdlcError(f"{recording.source}: no nuclei found; check the nucleus diameter and the voxel size")
+                sequence = Sequence([tables[t] for t in frames], frames, [""] * len(frames))
+            else:
+                if not sequence_path:
+                    raise FdlcError("choose a recording or a sequence first (a CSV with a t column, or a folder of CSVs)")
+                sequence, frames = read_sequence([sequence_path]), None
             if warming is not None:  # one model, used by one thread at a time
                 warming.join()
             ident = identifier
@@ -223,13 +319,14 @@ class TrackWidget(QWidget):
 
                 ident = default_identifier()
             result = track(sequence, references, ident, TrackSettings(use_colour=use_colour),
-                           progress=lambda done, total: signals.progress.emit(done, total))
-            return sequence, result
+                           progress=lambda done, total: signals.progress.emit("tracking", done, total))
+            return sequence, result, frames
 
         worker = work()
         self._worker = worker
         self._set_busy(True)
-        worker.returned.connect(lambda out: self._show(*out, Path(sequence_path).stem or "sequence"))
+        name = name or Path(sequence_path).stem or "sequence"
+        worker.returned.connect(lambda out: self._show(*out, name))
         worker.errored.connect(self._on_error)
         worker.finished.connect(lambda: self._set_busy(False))
         worker.start()
@@ -249,13 +346,13 @@ class TrackWidget(QWidget):
             loop.exec()
 
     # ------------------------------------------------------------------------------------------
-    def _show(self, sequence, result, name: str) -> None:
+    def _show(self, sequence, result, frames, name: str) -> None:
         self.sequence, self.result = sequence, result
         for layer in self.layers:
             if layer in self.viewer.layers:
                 self.viewer.layers.remove(layer)
         self.layers = []
-        for data, kwargs, kind in track_layers(result, sequence, name):
+        for data, kwargs, kind in track_layers(result, sequence, name, frames):
             self.layers.append(getattr(self.viewer, f"add_{kind}")(data, **kwargs))
         # Neurons are spread in z: show the whole volume at the current time point (in a 2D slice
         # only the neurons of one z plane would show), starting at the first time point.
@@ -292,6 +389,6 @@ class TrackWidget(QWidget):
         if not busy:
             self._worker = None
 
-    def _on_progress(self, done: int, total: int) -> None:
+    def _on_progress(self, doing: str, done: int, total: int) -> None:
         self.progress_bar.setValue(int(round(100 * done / max(total, 1))))
-        self.status.setText(f"tracking… {done}/{total} volumes")
+        self.status.setText(f"{doing}… {done}/{total} volumes")

@@ -443,9 +443,10 @@ def read_tiff(
         # Plain TIFFs do not record which axis is Z and which is C; guessing would mix them up.
         unknown = [n for a, n in zip(file_axes, data.shape) if a in "QI" and n > 1]
         if unknown:
+            example = {3: "ZYX", 4: "ZCYX", 5: "TZCYX"}.get(data.ndim, "ZCYX")
             raise ImageError(
                 f"{source}: the TIFF does not say its axes (shape {tuple(data.shape)}); "
-                "give them, e.g. --axes ZCYX (axes='ZCYX')"
+                f"give them, e.g. --axes {example} (axes='{example}')"
             )
     return finish_stack(data, file_axes, source, voxel, names, voxel_size, channels, time=time)
 
