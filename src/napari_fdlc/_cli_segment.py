@@ -50,11 +50,11 @@ def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def segment_recording(args: argparse.Namespace, path: str, prog: str) -> tuple[list[int], list]:
+def segment_recording(args: argparse.Namespace, path: str, prog: str) -> tuple[list[int], list, int]:
     """Read ``path`` as a recording (a single stack is a recording of one) and segment every
     time point with the options of :func:`add_stack_arguments`: the time points where nuclei
-    were found (0-based) and their neuron tables. Progress lines on stderr (unless
-    ``args.quiet``) for a recording or a big stack."""
+    were found (0-based), their neuron tables, and the recording's number of time points.
+    Progress lines on stderr (unless ``args.quiet``) for a recording or a big stack."""
     from .io.images import read_series
     from .segment import segment_series
 
@@ -91,7 +91,7 @@ def segment_recording(args: argparse.Namespace, path: str, prog: str) -> tuple[l
         shown = ", ".join(map(str, empty[:5])) + (" …" if len(empty) > 5 else "")
         warn(f"{path}: no nuclei found at {len(empty)} time point(s) ({shown}); they are left out")
     found = [t for t, table in enumerate(tables) if len(table)]
-    return found, [tables[t] for t in found]
+    return found, [tables[t] for t in found], len(series)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -100,13 +100,13 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         check_output(args.out, [args.stack], create_folder=True)
-        times, tables = segment_recording(args, args.stack, "fdlc segment")
-        write_table(tables[0] if times == [0] else join_by_time(tables, times), args.out)
+        times, tables, length = segment_recording(args, args.stack, "fdlc segment")
+        write_table(tables[0] if length == 1 else join_by_time(tables, times), args.out)
     except FdlcError as exc:
         print(f"fdlc: error: {exc}", file=sys.stderr)
         return 2
     if not args.quiet:
-        found = f"{len(tables[0])} nuclei" if times == [0] else \
+        found = f"{len(tables[0])} nuclei" if length == 1 else \
             f"{sum(map(len, tables))} nuclei in {len(tables)} time points"
         print(f"fdlc segment: {found} -> {args.out}", file=sys.stderr)
     return 0

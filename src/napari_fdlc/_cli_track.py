@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         from ._cli_segment import segment_recording
         from .track import Sequence
 
-        times, volumes = segment_recording(args, recording, "fdlc track")
+        times, volumes, _ = segment_recording(args, recording, "fdlc track")
         seq = Sequence(volumes, times, [""] * len(volumes))
     for raw in args.reference_t:
         references.append(_volume_at(seq, raw))
