@@ -243,6 +243,10 @@ def test_handedness_tells_which_chirality_to_use(tmp_path, worm, other_worm, cap
     assert run("handedness", paths[2], tmp_path / "unlabelled.csv") == 2
     captured = capsys.readouterr()
     assert captured.out == "" and len(captured.err.strip().splitlines()) == 1 and "at least 6" in captured.err
+    # an unlabelled reference is named as the problem, not the labelled worm
+    assert run("handedness", paths[2], "--template", tmp_path / "unlabelled.csv") == 2
+    err = capsys.readouterr().err
+    assert "unlabelled.csv: the reference has no named neuron" in err and len(err.strip().splitlines()) == 1
 
 
 @pytest.mark.parametrize("args", [["label", "t.csv"], ["label", "t.csv", "--chirality", "left", "--out", "o.csv"], ["nonsense"]])
