@@ -12,6 +12,7 @@ from napari_fdlc.table import NeuronTable, write_table
 from napari_fdlc.track import (
     SequenceParams,
     TrackSettings,
+    join_by_time,
     read_sequence,
     simulate_sequence,
     track,
@@ -34,14 +35,8 @@ def gentle(worm):
     return simulate_sequence(worm, 3, GENTLE)
 
 
-def _sequence_csv(volumes, path, labels=None):
-    frames = []
-    for t, v in enumerate(volumes):
-        df = v.to_dataframe().drop(columns=["label"])
-        df.insert(0, "t", t)
-        frames.append(df)
-    df = pd.concat(frames, ignore_index=True)
-    write_table(df, path)
+def _sequence_csv(volumes, path):
+    write_table(join_by_time(volumes).drop(columns=["label"]), path)
     return path
 
 

@@ -56,7 +56,7 @@ def segment_recording(args: argparse.Namespace, path: str, prog: str) -> tuple[l
     were found (0-based), their neuron tables, and the recording's number of time points.
     Progress lines on stderr (unless ``args.quiet``) for a recording or a big stack."""
     from .io.images import read_series
-    from .segment import segment_series
+    from .segment import segment_series, segment_stack
 
     if not (args.diameter_um > 0):
         raise FdlcError(f"--diameter-um must be a positive number of µm (got {args.diameter_um})")
@@ -72,8 +72,6 @@ def segment_recording(args: argparse.Namespace, path: str, prog: str) -> tuple[l
                 def progress(fraction: float, message: str) -> None:
                     print(f"{prog}: {100 * fraction:3.0f}% {message} ({time.monotonic() - start:.1f} s)",
                           file=sys.stderr, flush=True)
-            from .segment import segment_stack
-
             tables = [segment_stack(series.volume(0), progress=progress, **options)]
         else:
             def volumes_done(done: int, total: int) -> None:

@@ -39,7 +39,7 @@ def check_output(out: str | os.PathLike, inputs=(), create_folder: bool = False)
     text = str(out)
     path = Path(out)
     if not text or path.is_dir() or text.endswith(("/", os.sep)):
-        raise FdlcError(f"{text or '--out'}: --out must be a file, not a folder")
+        raise FdlcError(f"{text or '--out'}: is a folder; --out must be a file")
     existing = next(p for p in path.parents if p.exists() or p == Path(p.anchor or "."))
     if not existing.is_dir():
         raise FdlcError(f"{out}: {existing} is a file, not a folder")
@@ -47,12 +47,12 @@ def check_output(out: str | os.PathLike, inputs=(), create_folder: bool = False)
         raise FdlcError(f"{out}: the folder {path.parent} does not exist")
     if not os.access(existing, os.W_OK | os.X_OK):
         raise FdlcError(f"{out}: cannot write in {existing} (permission denied)")
-    if replaces_input(path, inputs):
-        raise FdlcError(f"{out}: --out would replace an input file; choose another output")
+    if _replaces_input(path, inputs):
+        raise FdlcError(f"{out}: --out would replace an input; choose another output")
     return path
 
 
-def replaces_input(path: str | os.PathLike, inputs) -> bool:
+def _replaces_input(path: str | os.PathLike, inputs) -> bool:
     """Whether writing ``path`` would replace one of the ``inputs`` (a folder: the files in it)."""
     target = Path(path).resolve()
     for given in inputs:

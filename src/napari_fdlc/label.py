@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .errors import FdlcError, replaces_input, warn
+from .errors import FdlcError, check_output, warn
 from .identify import (ADAPT_MIN_TESTS, FEW_NEURONS, Identifier, can_adapt_colours, colour_note, default_identifier,
                        harmonise, label_neurons, smaller_worm_note)
 from .match import Labelling, make_labelling, name_probabilities
@@ -69,21 +69,9 @@ def _output_paths(tests: list[str], out: str, inputs: list[str]) -> list[Path]:
     as_folder = len(tests) > 1 or out_path.is_dir() or out.endswith(("/", os.sep))
     if as_folder and out_path.exists() and not out_path.is_dir():
         raise FdlcError(f"{out}: with several test tables --out must be a directory")
-    paths = [out_path / f"{stem}.csv" for stem in stems] if as_folder else [out_path]
-    folder = out_path if as_folder else out_path.parent
-    existing = next(p for p in (folder, *folder.parents) if p.exists() or p == Path(p.anchor or "."))
-    if not existing.is_dir():
-        raise FdlcError(f"{out}: {existing} is a file, not a folder")
-    if not as_folder and existing != folder:
-        raise FdlcError(f"{out}: the folder {folder} does not exist")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise FdlcError(f"{out}: cannot write in {existing} (permission denied)")
-    for path in paths:
-        if path.is_dir():
-            raise FdlcError(f"{path}: is a folder; the answer for that test cannot be written there")
-        if replaces_input(path, inputs):
-            raise FdlcError(f"{path}: --out would replace an input table; choose another output")
-    return paths
+    if not as_folder:
+        return [check_output(out, inputs)]
+    return [check_output(out_path / f"{stem}.csv", inputs, create_folder=True) for stem in stems]
 
 
 def label_files(

@@ -421,27 +421,20 @@ def w_bleed_slopes(raw: dict[str, np.ndarray], quantile: float = 0.1, min_neuron
     return slopes
 
 
-def segment_stack(
-    stack: Stack,
-    diameter_um: float = 3.0,
-    progress: Progress | None = None,
-    threshold: float = 6.0,
-    min_relative: float = 0.08,
-    unmix: bool = True,
-    colour_split: bool = True,
-) -> NeuronTable:
+def segment_stack(stack: Stack, diameter_um: float = 3.0, progress: Progress | None = None, **options) -> NeuronTable:
     """Detect nuclei and read their colours: a neuron table in the stack's frame (µm).
 
     Columns: ``x_um, y_um, z_um``, ``R, G, B, W`` (per-volume z-scores; those with a channel),
     and extra columns ``GFP`` (background-subtracted counts, when there is a GFP channel),
     ``x_px, y_px, z_px`` (0-based voxel coordinates, as napari shows them) and ``score``
     (detection strength in noise SDs). ``progress(fraction, message)`` is called along the way.
-    ``unmix``: remove W's bleed-through from R and G (see :func:`measure_colours`).
-    ``colour_split``: add the touching nuclei that only a colour channel separates
-    (:func:`split_by_colour`).
+    ``options``: ``threshold`` (6.0: minimum detection strength in noise SDs) and
+    ``min_relative`` (0.08) of :func:`detect_nuclei`; ``unmix`` (True): remove W's
+    bleed-through from R and G (see :func:`measure_colours`); ``colour_split`` (True): add the
+    touching nuclei that only a colour channel separates (:func:`split_by_colour`).
     """
     _warn_without_w(stack)
-    return _segment_volume(stack, diameter_um, progress, threshold, min_relative, unmix, colour_split)
+    return _segment_volume(stack, diameter_um, progress, **options)
 
 
 def segment_series(

@@ -12,19 +12,15 @@ from napari_fdlc.table import write_table
 @pytest.fixture
 def sequence_csv(tmp_path):
     from napari_fdlc.reference import generate_worm
-    from napari_fdlc.track import SequenceParams, simulate_sequence
+    from napari_fdlc.track import SequenceParams, join_by_time, simulate_sequence
 
     worm = generate_worm(seed=4)
     params = SequenceParams(frames=5, bend_curvature=0.002, roll=0.05, xy_rotation=0.2, drift_um=3.0,
                             drop_fraction=(0.0, 0.05), max_spurious=2, jitter_um=0.2)
     volumes, origins = simulate_sequence(worm, 0, params)
-    frames = []
-    for t, v in enumerate(volumes):
-        df = v.to_dataframe().drop(columns=["label"])
-        df.insert(0, "t", 10 * t)  # time values need not be 0..T-1
-        frames.append(df)
     path = tmp_path / "recording.csv"
-    write_table(pd.concat(frames, ignore_index=True), path)
+    # time values need not be 0..T-1
+    write_table(join_by_time(volumes, [10 * t for t in range(len(volumes))]).drop(columns=["label"]), path)
     # a labelled reference: the first volume with the names of its source neurons
     first = volumes[0]
     labels = np.array([worm.labels[o] if o >= 0 else "" for o in origins[0]], dtype=object)

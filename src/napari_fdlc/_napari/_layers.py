@@ -111,7 +111,8 @@ def stack_from_layers(images: dict, source: str, recording: bool = False):
     """A :class:`~napari_fdlc.io.images.Stack` from image layers, one per channel role
     (``{"W": layer, ...}``), which must share their shape and voxel size (layer scale); a layer
     with axes before z, y, x gives its first volume. With ``recording``, a
-    :class:`~napari_fdlc.io.images.StackSeries` of t, z, y, x layers. Lazy (dask) layers stay lazy."""
+    :class:`~napari_fdlc.io.images.StackSeries` of t, z, y, x layers, lazy (dask): its volumes
+    are read one at a time. Lazy layers stay lazy."""
     from ..io.images import Stack, StackSeries
 
     if not images:
@@ -128,12 +129,14 @@ def stack_from_layers(images: dict, source: str, recording: bool = False):
     if len(scales) != 1:
         raise FdlcError("the chosen channels have different voxel sizes (layer scale); choose channels of one stack")
     arrays = [layer.data[(0,) * (layer.data.ndim - axes)] for layer in layers]
-    if all(isinstance(a, np.ndarray) for a in arrays):
-        data = np.stack(arrays, axis=axes - 3)
-    else:
+    if all(isinstance(a, np.ndarray) for a in arrays) and not recording:
+        data = np.stack(arrays)
+    else:  # a recording is read one time point at a time, never copied whole
         import dask.array as da
 
-        data = da.stack([da.asarray(a) for a in arrays], axis=axes - 3)
+        chunks = (1,) * recording + tuple(arrays[0].shape[recording:])
+        data = da.stack([da.from_array(a, chunks=chunks) if isinstance(a, np.ndarray) else da.asarray(a)
+                         for a in arrays], axis=axes - 3)
     kind = StackSeries if recording else Stack
     return kind(data, tuple(float(v) for v in layers[0].scale[-3:]), list(images.keys()), source=source,
                 channel_names=[layer.name for layer in layers])

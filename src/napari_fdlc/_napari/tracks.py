@@ -278,18 +278,14 @@ class TrackWidget(QWidget):
         identifier = self.identifier
         signals, warming = self._signals, self._warming
         source = self.source_combo.currentText()
-        recording = name = None
+        channels = name = None
         if source != SEQUENCE_FILE:
-            try:
-                channels = self._recordings().get(source)
-                if channels is None:
-                    raise FdlcError(f"the recording '{source}' is no longer in the viewer")
-                key_layer = channels.get("W") or next(iter(channels.values()))
-                recording = stack_from_layers(channels, image_key_of(key_layer), recording=True)
-            except FdlcError as exc:
-                self._error(str(exc))
+            channels = self._recordings().get(source)
+            if channels is None:
+                self._error(f"the recording '{source}' is no longer in the viewer")
                 return None
             name = source[len("recording: "):]
+            key = image_key_of(channels.get("W") or next(iter(channels.values())))
         diameter = float(self.diameter_spin.value())
 
         @thread_worker(start_thread=False, ignore_errors=True)
@@ -298,9 +294,10 @@ class TrackWidget(QWidget):
             from ..track import Sequence, TrackSettings, read_sequence, track
 
             references = [read_table(reference_path)] if reference_path else None
-            if recording is not None:
+            if channels is not None:
                 from ..segment import segment_series
 
+                recording = stack_from_layers(channels, key, recording=True)
                 tables = segment_series(recording, diameter,
                                         progress=lambda done, total: signals.progress.emit("segmenting", done, total))
                 frames = [t for t, table in enumerate(tables) if len(table)]
