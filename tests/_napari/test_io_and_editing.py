@@ -219,6 +219,32 @@ def test_gui_stays_responsive_while_labelling(labelled_viewer, identifier):
     assert widget.progress_bar.value() == 100
 
 
+def test_wait_returns_when_the_job_failed_before_it_was_called(labelled_viewer):
+    # A job that fails at once ends in the worker before wait() listens: wait() must still
+    # return at once (it used to wait for its whole timeout, or forever without one).
+    import threading
+    import time
+
+    from napari_fdlc.errors import FdlcError
+
+    viewer, widget = labelled_viewer
+    reached = threading.Event()
+
+    class RefusingIdentifier:
+        def label(self, *args, **kwargs):
+            reached.set()
+            raise FdlcError("refused at once")
+
+    widget.identifier = RefusingIdentifier()
+    widget.auto_label(wait=False)
+    assert reached.wait(timeout=60)
+    time.sleep(0.5)  # the worker has returned and emitted "finished" by now
+    start = time.perf_counter()
+    assert widget.wait(timeout=30)
+    assert time.perf_counter() - start < 10
+    assert widget.last_error is not None and "refused at once" in widget.last_error
+
+
 def test_handedness_choice_reaches_the_model(labelled_viewer, monkeypatch):
     """The Handedness box: Auto-label and Re-label name the worm with the chosen chirality."""
     import napari_fdlc.identify as identify

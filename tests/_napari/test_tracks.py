@@ -152,3 +152,17 @@ def test_no_recording_and_no_sequence_is_one_line(track_widget):
     assert "choose a recording or a sequence" in widget.last_error and "\n" not in widget.last_error
     with pytest.raises(Exception, match="no recording"):
         widget.set_recording("nothing.tif")
+
+
+def test_wait_returns_when_the_job_ended_before_it_was_called(track_widget):
+    # A job refused on its first line ends in the worker before wait() can listen for the
+    # worker's own "finished" (it used to wait forever, hanging the GUI suite about one run in five).
+    import time
+
+    viewer, widget = track_widget
+    widget.run(wait=False)
+    time.sleep(0.5)  # the worker has failed and emitted "finished" by now
+    start = time.perf_counter()
+    assert widget.wait(timeout=30)
+    assert time.perf_counter() - start < 10
+    assert "choose a recording or a sequence" in widget.last_error

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
-from qtpy.QtCore import QEvent, QEventLoop, QObject, Qt, QTimer, Signal
+from qtpy.QtCore import QEvent, QObject, Qt, QTimer, Signal
 from qtpy.QtGui import QColor
 from qtpy.QtWidgets import (
     QAbstractItemView,
@@ -69,6 +69,7 @@ from ..review import (
 )
 from ..table import COLOUR_CHANNELS, NeuronTable
 from ._io import RESULT_SUFFIX, image_key_of
+from ._jobs import wait_until_idle
 from ._layers import (
     META_KEY,
     STATUS_HEX,
@@ -121,6 +122,7 @@ class _Failed:
 
 class _Signals(QObject):
     progress = Signal(float, str)  # emitted from the worker thread, delivered on the GUI thread
+    idle = Signal()  # the job has ended (emitted on the GUI thread)
 
 
 class AutoLabelWidget(QWidget):
@@ -797,20 +799,7 @@ class AutoLabelWidget(QWidget):
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block (processing GUI events) until the running job is done; True when idle."""
-        if not self._busy:
-            return True
-        loop = QEventLoop()
-        worker = self._worker
-        worker.finished.connect(loop.quit)
-        if timeout is not None:
-            QTimer.singleShot(int(timeout * 1000), loop.quit)
-        if self._busy:
-            loop.exec()
-        try:
-            worker.finished.disconnect(loop.quit)
-        except (TypeError, RuntimeError):
-            pass
-        return not self._busy
+        return wait_until_idle(lambda: self._busy, self._signals.idle, timeout)
 
     def _check_idle(self) -> None:
         if self._busy:
@@ -851,6 +840,7 @@ class AutoLabelWidget(QWidget):
             self._busy = False
             self._worker = None
             self._set_running(False, what)
+            self._signals.idle.emit()
 
         worker.returned.connect(on_returned)
         worker.errored.connect(on_errored)

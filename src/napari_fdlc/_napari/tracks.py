@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from qtpy.QtCore import QEventLoop, QObject, QTimer, Signal
+from qtpy.QtCore import QObject, QTimer, Signal
 from qtpy.QtWidgets import (
     QCheckBox,
     QComboBox,
@@ -51,6 +51,7 @@ from qtpy.QtWidgets import (
 
 from ..errors import FdlcError
 from ._io import image_key_of
+from ._jobs import wait_until_idle
 from ._layers import META_KEY, _short_name, is_image_layer, layer_role, stack_from_layers
 from ._warm_up import start_warm_up
 
@@ -65,6 +66,7 @@ class _Signals(QObject):
     # (what is being done, volumes done, of how many): emitted from the worker thread, delivered
     # on the GUI thread
     progress = Signal(str, int, int)
+    idle = Signal()  # the job has ended (emitted on the GUI thread)
 
 
 def track_layers(result, sequence, name: str = "sequence", frames: list[int] | None = None) -> list[tuple]:
@@ -332,15 +334,9 @@ class TrackWidget(QWidget):
             return None if self.last_error else self.layers
         return worker
 
-    def wait(self) -> None:
-        """Process GUI events until the running job is done."""
-        worker = self._worker
-        if worker is None or not self._busy:
-            return
-        loop = QEventLoop()
-        worker.finished.connect(loop.quit)
-        if self._busy:
-            loop.exec()
+    def wait(self, timeout: float | None = None) -> bool:
+        """Process GUI events until the running job is done; True when idle."""
+        return wait_until_idle(lambda: self._busy, self._signals.idle, timeout)
 
     # ------------------------------------------------------------------------------------------
     def _show(self, sequence, result, frames, name: str) -> None:
@@ -385,6 +381,7 @@ class TrackWidget(QWidget):
             self.progress_bar.setValue(100)
         if not busy:
             self._worker = None
+            self._signals.idle.emit()
 
     def _on_progress(self, doing: str, done: int, total: int) -> None:
         self.progress_bar.setValue(int(round(100 * done / max(total, 1))))
