@@ -229,10 +229,25 @@ def carry_decisions(old, xyz_um: np.ndarray, max_distance_um: float = 1.5) -> di
             continue
         used_old.add(r)
         out[j] = decided[r]
-    lost = len(decided) - len(out)
-    if lost:
-        warn(f"{lost} user decision(s) had no neuron within {max_distance_um} µm in the new detection and were not carried over")
     return out
+
+
+def set_aside(path: str | os.PathLike) -> Path | None:
+    """Rename a session file that a new session is about to replace although it holds
+    decisions the new one lacks (or could not be read): ``<image>.fdlc-session.json`` becomes
+    ``<image>.fdlc-session.<date-time>.json``, which is never restored by itself but keeps every
+    decision. Returns the new name (None when there was no file)."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    stem = path.name[: -len(SESSION_SUFFIX)] if path.name.endswith(SESSION_SUFFIX) else path.stem
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    for n in range(100):
+        kept = path.with_name(f"{stem}.fdlc-session.{stamp}{'' if n == 0 else f'-{n}'}.json")
+        if not kept.exists():
+            break
+    os.replace(path, kept)
+    return kept
 
 
 def decisions_from_frame(df: pd.DataFrame) -> dict[int, Decision]:

@@ -94,14 +94,22 @@ def restored_session_layer(image_key: str, shape_zyx=None):
     try:
         session = ReviewSession.load(path)
     except FdlcError as exc:
-        warn(f"saved session not restored: {exc}")
+        _warn_in_napari(f"saved session not restored: {exc}")
         return None
     saved_shape = session.settings.get("image_shape")
     if shape_zyx is not None and saved_shape is not None and list(saved_shape) != list(shape_zyx):
-        warn(f"{path}: saved for an image of shape {saved_shape}, not {list(shape_zyx)}; not restored")
+        _warn_in_napari(f"{path}: saved for an image of shape {saved_shape}, not {list(shape_zyx)}; not restored")
         return None
     name = session.settings.get("layer_name") or f"{_short_name(image_key)}{RESULT_SUFFIX}"
     return review_points(session, name, {"session": str(path), "image": image_key})
+
+
+def _warn_in_napari(message: str) -> None:
+    """A warning the user sees in napari (and on stderr, where scripts see it)."""
+    from napari.utils.notifications import show_warning
+
+    warn(message)
+    show_warning(message)
 
 
 # ----- neuron tables --------------------------------------------------------------------------

@@ -66,6 +66,7 @@ from ..review import (
     load_preferences,
     save_preferences,
     session_file_for,
+    set_aside,
 )
 from ..table import COLOUR_CHANNELS, NeuronTable
 from ._io import RESULT_SUFFIX, image_key_of
@@ -652,11 +653,11 @@ class AutoLabelWidget(QWidget):
         use_colour = self.colour_check.isChecked()
         diameter = float(self.diameter_spin.value())
         identifier, chirality = self.identifier, self.chirality_combo.currentData()
-        stack = self._make_stack(images) if images else None
-        image_key = stack.source if stack is not None else None
-        base_name = None
+        # The channels are stacked (a copy of every one) in the worker, not on the GUI thread.
+        image_key = base_name = None
         if images:
             key_layer = images.get("W") or next(iter(images.values()))
+            image_key = image_key_of(key_layer)
             base_name = ((key_layer.metadata or {}).get(META_KEY) or {}).get("stack_name")
 
         own = source != SEGMENT and self.layer is not None and source == self.layer.name and self.session is not None
@@ -673,14 +674,19 @@ class AutoLabelWidget(QWidget):
             decisions = decisions_from_frame(points.features) if len(points.features) == len(given_table) else {}
             if image_key is None:
                 image_key = image_key_of(points)
-        elif stack is None:
+        elif not images:
+            flat = [layer.name for layer in self.viewer.layers if type(layer).__name__ == "Image" and not is_image_layer(layer)]
+            if flat and not any(is_image_layer(layer) for layer in self.viewer.layers):
+                raise FdlcError(f"Auto-label needs a 3D stack (z, y, x): '{flat[0]}' is a 2D image (a projection?); open the stack itself")
             raise FdlcError("no image chosen to detect nuclei in: pick the W (TagRFP-T) channel layer")
         previous = self.session if (self.session is not None and not own and self.session.image == image_key) else None
+        unreadable = None  # why a saved session of this image could not be read
         if previous is None and not own and image_key is not None:
-            previous = _saved_session(image_key)  # e.g. the neuron-ID layer was deleted: keep its decisions
-        voxel = stack.voxel_size_zyx if stack is not None else (self.session.voxel_size_zyx if own else None)
-        if voxel is None and source != SEGMENT and not own and not np.allclose(points_scale, 1.0):
-            voxel = points_scale  # points of a table we exported: keep them on their voxels
+            previous, unreadable = _saved_session(image_key)  # e.g. the neuron-ID layer was deleted: keep its decisions
+        # without an image: the voxels of the session, or of points of a table we exported
+        voxel_without_image = self.session.voxel_size_zyx if own else None
+        if voxel_without_image is None and source != SEGMENT and not own and not np.allclose(points_scale, 1.0):
+            voxel_without_image = points_scale
         own_decisions = self.session.decisions() if own else None
         # snapshots: the worker thread never reads a session the user may be editing
         previous_snapshot = (previous.table.xyz.copy(), previous.decisions()) if previous is not None else None
@@ -690,6 +696,7 @@ class AutoLabelWidget(QWidget):
             from ..identify import label_neurons
             from ..table import implausible_scale
 
+            stack = stack_from_layers(images, image_key) if images else None
             table = given_table
             if table is None:
                 from ..segment import segment_stack
@@ -704,8 +711,11 @@ class AutoLabelWidget(QWidget):
             if len(table) == 0:
                 raise FdlcError("no nuclei found: check the W channel and the nucleus diameter")
             carried = dict(decisions)
+            lost = 0  # earlier decisions with no neuron of the new detection to go to
             if previous_snapshot is not None and previous_snapshot[1]:
-                carried.update(carry_decisions(previous_snapshot, table.xyz))
+                from_previous = carry_decisions(previous_snapshot, table.xyz)
+                lost = len(previous_snapshot[1]) - len(from_previous)
+                carried.update(from_previous)
             if own_decisions is not None:
                 carried = own_decisions
             fixed = {i: d.name for i, d in carried.items()}
@@ -715,24 +725,32 @@ class AutoLabelWidget(QWidget):
             labelling = label_neurons(table, templates, use_colour=use_colour, fixed=fixed or None,
                                       identifier=_with_chirality(identifier, chirality))
             signals.progress.emit(1.0, "done")
-            return table, labelling, carried, implausible_scale(table)
+            return stack, table, labelling, carried, lost, implausible_scale(table)
 
         def done(result):
-            table, labelling, carried, scale_warning = result
+            stack, table, labelling, carried, lost, scale_warning = result
+            if stack is not None:
+                self._stack = stack
+            voxel = stack.voxel_size_zyx if stack is not None else voxel_without_image
             settings = {"template": template_text, "colour": use_colour, "diameter_um": diameter}
             if own:
+                if self.session is None or self.session.table is not given_table:
+                    # the layer, or points of it, went while the job ran
+                    raise FdlcError("the neurons changed while auto-labelling; run Auto-label again")
                 self.session.settings.update(settings)
                 self.session.set_labelling(labelling, "auto-label")
             else:
                 if self.session is not None and self.session.image == image_key:
                     # decisions made while the job ran are kept too
-                    carried = {**carried, **carry_decisions(self.session, table.xyz)}
-                self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name)
+                    during = carry_decisions(self.session, table.xyz)
+                    lost = max(lost, len(self.session.decisions()) - len(during))
+                    carried = {**carried, **during}
+                self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name,
+                                  lost=lost, unreadable=unreadable)
             self._status(self._done_message(len(table), labelling))
             if scale_warning:  # e.g. a voxel size or points layer not in µm: names come out meaningless, say why
                 self._notify_warning(scale_warning)
 
-        self._stack = stack if stack is not None else self._stack
         return self._start(work, done, wait, "auto-label")
 
     def relabel(self, wait: bool = True):
@@ -829,7 +847,7 @@ class AutoLabelWidget(QWidget):
                 return
             try:
                 done(result)
-            except FdlcError as exc:
+            except Exception as exc:  # noqa: BLE001 - shown in the widget, never a bare traceback
                 self._report_error(exc)
 
         def on_errored(exc):
@@ -864,9 +882,21 @@ class AutoLabelWidget(QWidget):
         self.progress_bar.setValue(int(round(100 * max(0.0, min(1.0, fraction)))))
         self.progress_bar.setFormat(f"{message} (%p%)")
 
-    def _new_session(self, table, labelling, carried, image_key, voxel, stack, settings, source_name, base_name=None) -> None:
+    def _new_session(self, table, labelling, carried, image_key, voxel, stack, settings, source_name, base_name=None,
+                     lost: int = 0, unreadable: str | None = None) -> None:
+        """Show a new session; the session file it replaces is first set aside when it holds
+        decisions the new one lacks (``lost`` of them could not be carried over) or could not be
+        read (``unreadable``): annotations are never lost."""
         key = image_key or f"layer:{source_name}"
         path = session_file_for(key)
+        if lost or unreadable:
+            kept = set_aside(path)
+            where = f"; the earlier session is kept in {kept}" if kept else ""
+            if unreadable:
+                self._notify_warning(f"the saved session of this image could not be read ({unreadable}){where}")
+            if lost:
+                self._notify_warning(f"{lost} of your decisions had no neuron within 1.5 µm in the new detection "
+                                     f"and were not carried over{where}")
         session = ReviewSession(
             table, labelling, threshold=self.threshold, voxel_size_zyx=voxel, image=key, path=path
         )
@@ -1031,8 +1061,9 @@ class AutoLabelWidget(QWidget):
         stack = self._stack
         image = self.session.image if self.session is not None else None
         if stack is None or stack.source != image:
-            try:  # e.g. a session restored from its file: the channels chosen in the widget
-                stack = self._make_stack(self._chosen_images())
+            try:  # e.g. a session restored from its file: the channels chosen in the widget (kept
+                # for the next point added: stacking copies every channel)
+                stack = self._stack = self._make_stack(self._chosen_images())
             except FdlcError:
                 stack = None
         if stack is not None and stack.source == image:
@@ -1379,18 +1410,18 @@ def camera(viewer):
     return scene.camera if scene is not None and hasattr(scene, "camera") else viewer.camera
 
 
-def _saved_session(image_key: str) -> ReviewSession | None:
-    from ..errors import warn
+def _saved_session(image_key: str) -> tuple[ReviewSession | None, str | None]:
+    """The saved session of ``image_key`` (None when there is none), and why it could not be
+    read when it could not."""
     from ..review import find_session
 
     path = find_session(image_key)
     if path is None:
-        return None
+        return None, None
     try:
-        return ReviewSession.load(path)
+        return ReviewSession.load(path), None
     except FdlcError as exc:
-        warn(f"earlier decisions not carried over: {exc}")
-        return None
+        return None, str(exc)
 
 
 CHIRALITY_CHOICES = (("auto", "auto"), ("same", "as the template / atlas"), ("mirrored", "mirrored"))
