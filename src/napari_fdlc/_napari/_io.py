@@ -52,14 +52,16 @@ def read_stack_layers(path) -> list[tuple]:
     p = _one_path(path)
     series = read_series(p)
     if len(series) > 1:
-        return stack_layers(series)
-    stack = Stack(series.data[0], series.voxel_size_zyx, series.channel_roles, series.source, series.channel_names)
-    layers = stack_layers(stack)
-    if p.lower().endswith(".nwb"):
-        neurons = _nwb_neurons(p, stack)
-        if neurons is not None:
-            layers.append(neurons)
-    restored = restored_session_layer(stack.source, stack.shape_zyx)
+        layers = stack_layers(series)
+    else:
+        stack = Stack(series.data[0], series.voxel_size_zyx, series.channel_roles, series.source, series.channel_names)
+        layers = stack_layers(stack)
+        if p.lower().endswith(".nwb"):
+            neurons = _nwb_neurons(p, stack)
+            if neurons is not None:
+                layers.append(neurons)
+    # Auto-label names a recording's first time point: its session is restored alike
+    restored = restored_session_layer(series.source, tuple(series.data.shape[-3:]))
     if restored is not None:
         layers.append(restored)
     return layers
@@ -224,4 +226,19 @@ def image_key_of(layer) -> str:
     if source is not None and getattr(source, "sample", None):
         plugin, name = source.sample
         return f"sample:{plugin}:{name}"
-    return f"layer:{layer.name}"
+    # An image made in napari (a script, the console, another plugin) has no file: its name and
+    # a fingerprint of its data, so that another image that happens to share the name does not
+    # get this one's session.
+    return f"layer:{_fingerprint(layer.data)}:{layer.name}"
+
+
+def _fingerprint(data) -> str:
+    """A short hash of an array's shape, type and (in memory) a sparse grid of its values: at
+    most ~17 per axis, quick even for a big array."""
+    import hashlib
+
+    digest = hashlib.sha1(repr((tuple(data.shape), str(data.dtype))).encode())
+    if isinstance(data, np.ndarray):  # a lazy array's values are not read for this
+        grid = tuple(slice(None, None, max(1, n // 16)) for n in data.shape)
+        digest.update(np.ascontiguousarray(data[grid]).tobytes())
+    return digest.hexdigest()[:10]

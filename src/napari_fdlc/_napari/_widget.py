@@ -142,6 +142,8 @@ class AutoLabelWidget(QWidget):
         self._worker = None
         self._busy = False
         self._stack = None  # the Stack of the last run (colours of points added by hand)
+        self._released = False  # closed (see _release_viewer)
+        self._roles_off: set[str] = set()  # channels the user set to (none): never guessed again
         self._guard = 0  # > 0 while the widget itself changes layers / controls
         self._known_names: list[str] | None = None
         self._bound: list = []  # key-binding providers (the viewer, neuron-ID layers)
@@ -219,6 +221,7 @@ class AutoLabelWidget(QWidget):
             combo = _combo()
             combo.setToolTip(f"image layer holding the {text} channel")
             self.role_combos[role] = combo
+            combo.activated.connect(lambda _index, role=role: self._on_role_activated(role))
             form.addRow(text, combo)
         self.neurons_combo = _combo()
         self.neurons_combo.setToolTip("detect nuclei in the image, or use the points of an existing layer")
@@ -403,7 +406,10 @@ class AutoLabelWidget(QWidget):
         return super().event(e)
 
     def _release_viewer(self) -> None:
-        """Unbind the keys and disconnect from the viewer (the widget was closed)."""
+        """Unbind the keys and disconnect from the viewer (the widget was closed). A job still
+        running is left to end, and its result is dropped: a widget docked again must not find
+        a layer that the closed one links to itself."""
+        self._released = True
         for provider in self._bound:
             for key, _action, _text in KEYS:
                 try:
@@ -442,9 +448,21 @@ class AutoLabelWidget(QWidget):
             "redo": lambda: self._gui(self.redo),
         }
         for key, action, _ in KEYS:
-            fn = actions[action]
-            provider.bind_key(key, lambda _obj=None, fn=fn: fn(), overwrite=True)
+            provider.bind_key(key, lambda obj=None, fn=actions[action]: self._on_key(obj, fn), overwrite=True)
         self._bound.append(provider)
+
+    def _on_key(self, provider, action: Callable[[], object]) -> None:
+        """A review key: pressed on the neuron-ID layer of another worm (one reviewed earlier
+        in this viewer), it reviews that worm first, so the key acts on the neuron selected there."""
+        meta = (getattr(provider, "metadata", None) or {}).get(META_KEY) or {}
+        if _is_points(provider) and provider is not self.layer and meta.get("session"):
+            if self._busy:
+                self._gui(self._check_idle)
+                return
+            self._gui(self._adopt, provider)
+            if self.layer is not provider:
+                return
+        action()
 
     def _focus_name(self) -> None:
         self.name_edit.setFocus()
@@ -458,10 +476,22 @@ class AutoLabelWidget(QWidget):
             return
         meta = (layer.metadata or {}).get(META_KEY) or {}
         if _is_points(layer) and meta.get("session"):
+            if self._under_review(meta["session"]):
+                # a copy of the neuron-ID layer (Duplicate Layer): a plain points layer, not a
+                # second view of the session under review
+                with self._guarded():
+                    layer.metadata = {k: v for k, v in layer.metadata.items() if k != META_KEY}
+                return
             self._gui(self._adopt, layer)
         elif is_image_layer(layer):
             # after the reader's other layers (a restored session layer comes right after)
             QTimer.singleShot(0, lambda: self._restore_for_image(layer))
+
+    def _under_review(self, session_path: str) -> bool:
+        """Whether the session of ``session_path`` is the one under review, in a layer that is
+        still in the viewer."""
+        return (self.session is not None and self.session.path is not None and str(self.session.path) == str(session_path)
+                and self.layer is not None and self.layer in self.viewer.layers)
 
     def _on_layer_removed(self, event) -> None:
         if event.value is self.layer:
@@ -469,10 +499,16 @@ class AutoLabelWidget(QWidget):
         self._refresh_choices()
 
     def _adopt_existing(self) -> None:
+        """Docked into a viewer with layers: review a neuron-ID layer there, or bring back the
+        saved session of an image opened by another reader."""
         for layer in self.viewer.layers:
             meta = (layer.metadata or {}).get(META_KEY) or {}
             if _is_points(layer) and meta.get("session"):
                 self._gui(self._adopt, layer)
+        if self.layer is None:
+            for layer in list(self.viewer.layers):
+                if is_image_layer(layer):
+                    self._restore_for_image(layer)
 
     def _restore_for_image(self, image_layer) -> None:
         """An image with a saved session but no neuron-ID layer (opened by another reader):
@@ -496,42 +532,38 @@ class AutoLabelWidget(QWidget):
     # =========================================================================================
     # choices in the combo boxes
     def _refresh_choices(self, *_) -> None:
+        """Rebuild the combo boxes from the viewer's layers. Each layer item carries its layer,
+        so a choice follows the layer when it is renamed; a channel the user turned off stays
+        off (``_roles_off``); one never chosen is guessed from the layers' roles."""
         images = [layer for layer in self.viewer.layers if is_image_layer(layer)]
         points = [layer for layer in self.viewer.layers if _is_points(layer)]
         with self._guarded():
             for role, combo in self.role_combos.items():
-                current = combo.currentText()
-                combo.clear()
-                combo.addItem(NONE)
-                combo.addItems([layer.name for layer in images])
-                guess = current if current in [layer.name for layer in images] else None
-                if guess is None:
-                    guess = next((layer.name for layer in images if layer_role(layer) == role), NONE)
-                combo.setCurrentText(guess)
-            current = self.neurons_combo.currentText()
-            self.neurons_combo.clear()
-            self.neurons_combo.addItem(SEGMENT)
-            self.neurons_combo.addItems([layer.name for layer in points])
-            if current in [layer.name for layer in points] or current == SEGMENT:
-                self.neurons_combo.setCurrentText(current)
-            current = self.template_combo.currentText()
-            self.template_combo.clear()
-            if self._script_templates is not None:
-                self.template_combo.addItem(SCRIPTED)
-            self.template_combo.addItem(BUILTIN)
-            for layer in points:
-                if layer is not self.layer and named_count(layer) > 0:
-                    self.template_combo.addItem(f"layer: {layer.name}")
-            for name in self._file_templates:
-                self.template_combo.addItem(name)
-            self.template_combo.addItem(FROM_FILE)
-            items = [self.template_combo.itemText(i) for i in range(self.template_combo.count())]
-            if current in items and current != FROM_FILE:
-                self.template_combo.setCurrentText(current)
-            elif self._script_templates is not None:
-                self.template_combo.setCurrentText(SCRIPTED)
-            else:
-                self.template_combo.setCurrentText(BUILTIN)
+                chosen = combo.currentData()
+                _fill(combo, [(NONE, None)] + [(layer.name, layer) for layer in images])
+                if chosen is None and role not in self._roles_off:
+                    chosen = next((layer for layer in images if layer_role(layer) == role), None)
+                _choose(combo, chosen, NONE)
+            chosen = self.neurons_combo.currentData()
+            _fill(self.neurons_combo, [(SEGMENT, None)] + [(layer.name, layer) for layer in points])
+            _choose(self.neurons_combo, chosen, SEGMENT)
+            current, chosen = self.template_combo.currentText(), self.template_combo.currentData()
+            items = [(SCRIPTED, None)] if self._script_templates is not None else []
+            items += [(BUILTIN, None)]
+            items += [(f"layer: {layer.name}", layer) for layer in points if layer is not self.layer and named_count(layer) > 0]
+            items += [(name, None) for name in self._file_templates] + [(FROM_FILE, None)]
+            _fill(self.template_combo, items)
+            texts = [text for text, _ in items]
+            fallback = (current if current in texts and current != FROM_FILE and not current.startswith("layer: ")
+                        else SCRIPTED if self._script_templates is not None else BUILTIN)
+            _choose(self.template_combo, chosen, fallback)
+
+    def _on_role_activated(self, role: str) -> None:
+        """The user chose a channel's layer, or turned the channel off."""
+        if self.role_combos[role].currentText() == NONE:
+            self._roles_off.add(role)
+        else:
+            self._roles_off.discard(role)
 
     def _on_template_activated(self, index: int) -> None:
         if self.template_combo.itemText(index) != FROM_FILE:
@@ -590,6 +622,7 @@ class AutoLabelWidget(QWidget):
             if self.role_combos[role].findText(name) < 0:
                 raise FdlcError(f"no image layer named '{name}'")
             self.role_combos[role].setCurrentText(name)
+            self._on_role_activated(role)
 
     def set_neurons(self, source) -> None:
         """Where neurons come from: ``'segment'`` or a Points layer (or its name)."""
@@ -842,6 +875,8 @@ class AutoLabelWidget(QWidget):
         self._set_running(True, what)
 
         def on_returned(result):
+            if self._released:  # the widget was closed while the job ran: its result is dropped
+                return
             if isinstance(result, _Failed):
                 self._report_error(result.exc)
                 return
@@ -1435,6 +1470,22 @@ def _with_chirality(identifier, chirality: str):
     if not hasattr(identifier, "with_chirality"):  # scripts may inject their own matcher
         return identifier
     return identifier.with_chirality(chirality)
+
+
+def _fill(combo: QComboBox, items: list[tuple[str, object]]) -> None:
+    """Replace a combo box's items by (text, layer or None)."""
+    combo.clear()
+    for text, layer in items:
+        combo.addItem(text, layer)
+
+
+def _choose(combo: QComboBox, layer, fallback: str) -> None:
+    """Select ``layer``'s item (under whatever name it has now), else the item ``fallback``."""
+    index = next((i for i in range(combo.count()) if layer is not None and combo.itemData(i) is layer), -1)
+    if index >= 0:
+        combo.setCurrentIndex(index)
+    else:
+        combo.setCurrentText(fallback)
 
 
 def _combo() -> QComboBox:

@@ -189,10 +189,17 @@ class TrackWidget(QWidget):
         layout.addStretch(1)
         self._refresh_recordings()
         for event in (self.viewer.layers.events.inserted, self.viewer.layers.events.removed):
-            event.connect(self._refresh_recordings)
+            event.connect(self._on_layers_changed)
+        for layer in self.viewer.layers:
+            layer.events.name.connect(self._refresh_recordings)
 
-    def _recordings(self) -> dict[str, dict[str, object]]:
-        """The recordings in the viewer: {name shown: {role: layer}}, from t, z, y, x image
+    def _on_layers_changed(self, event) -> None:
+        if event.type == "inserted":
+            event.value.events.name.connect(self._refresh_recordings)  # a recording renamed
+        self._refresh_recordings()
+
+    def _recordings(self) -> dict[str, tuple[str, dict[str, object]]]:
+        """The recordings in the viewer: {name shown: (image key, {role: layer})}, from t, z, y, x image
         layers grouped by the file they came from (a layer of its own without a known role is
         taken as W, the channel nuclei are found in)."""
         groups: dict[str, list] = {}
@@ -209,15 +216,22 @@ class TrackWidget(QWidget):
             if channels:
                 meta = (layers[0].metadata or {}).get(META_KEY) or {}
                 name = meta.get("stack_name") or (_short_name(key) if len(layers) > 1 else layers[0].name)
-                out[f"recording: {name}"] = channels
+                out[f"recording: {name}"] = (key, channels)
         return out
 
     def _refresh_recordings(self, *_) -> None:
-        current = self.source_combo.currentText()
+        """Offer the recordings in the viewer; the one chosen stays chosen (by its image, so
+        also when it was renamed)."""
+        current, current_key = self.source_combo.currentText(), self.source_combo.currentData()
         self.source_combo.blockSignals(True)
         self.source_combo.clear()
-        self.source_combo.addItems([*self._recordings(), SEQUENCE_FILE])
-        if self.source_combo.findText(current) >= 0 and not (current == SEQUENCE_FILE and not self.sequence_edit.text()):
+        for name, (key, _) in self._recordings().items():
+            self.source_combo.addItem(name, key)
+        self.source_combo.addItem(SEQUENCE_FILE)
+        same = self.source_combo.findData(current_key) if current_key is not None else -1
+        if same >= 0:
+            self.source_combo.setCurrentIndex(same)
+        elif self.source_combo.findText(current) >= 0 and not (current == SEQUENCE_FILE and not self.sequence_edit.text()):
             self.source_combo.setCurrentText(current)  # else a recording, when there is one, comes first
         self.source_combo.blockSignals(False)
 
@@ -282,12 +296,11 @@ class TrackWidget(QWidget):
         source = self.source_combo.currentText()
         channels = name = None
         if source != SEQUENCE_FILE:
-            channels = self._recordings().get(source)
+            key, channels = self._recordings().get(source, (None, None))
             if channels is None:
                 self._error(f"the recording '{source}' is no longer in the viewer")
                 return None
             name = source[len("recording: "):]
-            key = image_key_of(channels.get("W") or next(iter(channels.values())))
         diameter = float(self.diameter_spin.value())
 
         @thread_worker(start_thread=False, ignore_errors=True)
