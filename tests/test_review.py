@@ -313,6 +313,21 @@ def test_carry_decisions_to_a_new_detection(session):
     assert new.auto_id[0] == "RMDL"  # the machine's answer of the carried row
 
 
+def test_a_replaced_session_file_is_set_aside_not_lost(tmp_path, session):
+    from napari_fdlc.review import SESSION_SUFFIX, set_aside
+
+    session.accept(0)
+    path = session.save(tmp_path / f"worm.tif{SESSION_SUFFIX}")
+    assert set_aside(tmp_path / f"other.tif{SESSION_SUFFIX}") is None  # nothing there
+    first = set_aside(path)
+    path.write_text("{}")
+    second = set_aside(path)  # twice within a second: another name
+    assert not path.exists() and first != second
+    assert first.name.startswith("worm.tif.fdlc-session.") and first.suffix == ".json"
+    assert ReviewSession.load(first).status[0] == "accepted" and second.read_text() == "{}"
+    assert find_session(tmp_path / "worm.tif") is None  # never restored by itself
+
+
 def test_decisions_read_back_from_an_export(tmp_path, session):
     from napari_fdlc.review import decisions_from_frame
 

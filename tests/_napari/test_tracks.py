@@ -166,3 +166,16 @@ def test_wait_returns_when_the_job_ended_before_it_was_called(track_widget):
     assert widget.wait(timeout=30)
     assert time.perf_counter() - start < 10
     assert "choose a recording or a sequence" in widget.last_error
+
+
+def test_track_widget_follows_a_renamed_recording(make_napari_viewer):
+    """A recording opened by another reader (one t, z, y, x layer), renamed in the layer list:
+    'Neurons from' offers it under its new name (it used to keep the old one, and Track said
+    the recording was gone)."""
+    viewer = make_napari_viewer()
+    viewer.add_image(np.zeros((2, 4, 16, 16), dtype=np.float32), name="rec")
+    _, track = viewer.window.add_plugin_dock_widget("napari-fdlc", "Track neurons")
+    assert track.source_combo.currentText() == "recording: rec"
+    viewer.layers["rec"].name = "worm 7"
+    items = [track.source_combo.itemText(i) for i in range(track.source_combo.count())]
+    assert "recording: worm 7" in items, items

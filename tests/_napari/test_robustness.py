@@ -1,0 +1,362 @@
+"""The Auto-label widget when layers, sessions and the widget itself change around it: what
+a user does to layers while a job runs, to the channel and neuron choices, to the neuron-ID
+layer, and what keeps their decisions from ever being lost. Each test says what the user does
+and what happens (and what used to happen: these came from a review of the widget).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+import time
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from napari_fdlc._napari._widget import NONE
+
+
+class _Slow:
+    """The real (untrained) model, made slow: a job that is still running when the user acts."""
+
+    def __init__(self, identifier, seconds=1.0):
+        self.identifier, self.seconds = identifier, seconds
+
+    def label(self, *args, **kwargs):
+        time.sleep(self.seconds)
+        return self.identifier.label(*args, **kwargs)
+
+
+# --- Auto-label widget: the user's choices in the combo boxes -----------------------------------
+
+
+def test_a_channel_set_to_none_stays_none_after_auto_label(labelled_viewer):
+    """The user turns a channel off (B = (none), e.g. a bad BFP channel) and runs Auto-label: B
+    stays off (the neuron-ID layer that Auto-label adds, as any layer added, removed or renamed,
+    used to put the B layer back, and the next run silently used it)."""
+    viewer, widget = labelled_viewer
+    widget.set_channels(B=None)
+    assert widget.auto_label() is not None
+    assert widget.role_combos["B"].currentText() == NONE
+    assert "B" not in widget._chosen_images()
+
+
+def test_renaming_the_chosen_neurons_layer_keeps_it_chosen(labelled_viewer):
+    """The user picks a Points layer as Neurons and as the template, then renames it: both
+    choices follow the layer (they used to fall back to 'Detect nuclei in the image' and the
+    built-in panel)."""
+    viewer, widget = labelled_viewer
+    truth = viewer.layers["sample neurons (truth)"]
+    widget.set_neurons(truth)
+    widget.set_template("sample neurons (truth)")
+    truth.name = "my neurons"
+    chosen = {"neurons": widget.neurons_combo.currentText(), "template": widget.template_combo.currentText()}
+    assert chosen == {"neurons": "my neurons", "template": "layer: my neurons"}
+
+
+# --- Auto-label widget: layers closed while a job runs ------------------------------------------
+
+
+def test_deleting_the_neuron_id_layer_while_auto_label_runs_on_it(labelled_viewer, identifier, qtbot):
+    """Neurons = the neuron-ID layer itself (to keep points edited by hand), click Auto-label,
+    delete the layer while it runs: a one-line message, no traceback (it used to raise
+    AttributeError in the result handler)."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    widget.set_neurons(layer)
+    widget.identifier = _Slow(identifier, 1.0)
+    with qtbot.capture_exceptions() as exceptions:
+        widget.auto_label(wait=False)
+        viewer.layers.remove(layer)
+        assert widget.wait(timeout=30)
+    assert not exceptions, [str(e[1]) for e in exceptions]
+    assert widget.last_error is not None or widget.layer is not None
+
+
+def test_deleting_a_point_while_auto_label_runs_on_the_neuron_id_layer(labelled_viewer, identifier):
+    """Neurons = the neuron-ID layer, click Auto-label, delete a point while it runs: the result
+    is refused with a message that says what to do (it used to be an internal one: 'the
+    labelling has N neurons but the table has N-1')."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    widget.set_neurons(layer)
+    widget.identifier = _Slow(identifier, 1.0)
+    widget.auto_label(wait=False)
+    layer.selected_data = {0}
+    layer.remove_selected()
+    assert widget.wait(timeout=30)
+    assert widget.last_error is None or "labelling has" not in widget.last_error, widget.last_error
+
+
+# --- Auto-label widget: work on the GUI thread --------------------------------------------------
+
+
+def test_the_image_is_copied_off_the_gui_thread(labelled_viewer, monkeypatch):
+    """Clicking Auto-label stacks the chosen channel layers (a copy of every channel) in the
+    worker, not on the GUI thread."""
+    from napari_fdlc._napari import _widget
+
+    viewer, widget = labelled_viewer
+    threads = []
+    original = _widget.stack_from_layers
+
+    def spy(*args, **kwargs):
+        threads.append(threading.current_thread())
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(_widget, "stack_from_layers", spy)
+    widget.auto_label(wait=False)
+    assert widget.wait(timeout=60)
+    assert threads and threading.main_thread() not in threads
+
+
+# --- annotations lost ------------------------------------------------------------------------------
+
+
+def _notifications_since(before):
+    from napari.utils.notifications import notification_manager
+
+    return [str(r.message) for r in notification_manager.records[before:]]
+
+
+def _isolated_named_row(widget, min_um=3.0):
+    """A named neuron with no other neuron within ``min_um``: its decision cannot be carried."""
+    xyz = widget.session.table.xyz
+    d, _ = cKDTree(xyz).query(xyz, k=2)
+    rows = [i for i in np.flatnonzero(d[:, 1] > min_um) if widget.session.auto_id[i]]
+    assert rows
+    return int(rows[0])
+
+
+def _auto_label_again_without(viewer, widget, row):
+    """Auto-label again on a new detection that misses neuron ``row`` (e.g. another diameter)."""
+    layer = widget.layer
+    keep = [i for i in range(len(layer.data)) if i != row]
+    viewer.add_points(np.asarray(layer.data)[keep], scale=layer.scale, name="new detection")
+    widget.set_neurons("new detection")
+    return widget.auto_label()
+
+
+def test_decisions_not_carried_to_a_new_detection_are_reported_in_the_gui(labelled_viewer):
+    """Auto-label again on a new detection (e.g. another nucleus diameter) that misses a
+    neuron the user named: napari says the decision was not carried over (it used to say so
+    on stderr only)."""
+    from napari.utils.notifications import notification_manager
+
+    viewer, widget = labelled_viewer
+    widget.auto_label()
+    row = _isolated_named_row(widget)
+    widget.assign(row, "AVAL")
+    before = len(notification_manager.records)
+    assert _auto_label_again_without(viewer, widget, row) is not None
+    assert "AVAL" not in widget.session.user_id  # the decision is gone ...
+    messages = _notifications_since(before)
+    assert any("not carried over" in m for m in messages), messages  # ... and napari should say so
+
+
+def test_a_decision_not_carried_over_is_kept_on_disk(labelled_viewer):
+    """... and the decision is not lost: the earlier session file is set aside, not replaced
+    (the new session's autosave used to overwrite it), and the message says where it is."""
+    from napari.utils.notifications import notification_manager
+
+    viewer, widget = labelled_viewer
+    widget.auto_label()
+    row = _isolated_named_row(widget)
+    widget.assign(row, "AVAL")
+    path = widget.session.path
+    before = len(notification_manager.records)
+    assert _auto_label_again_without(viewer, widget, row) is not None
+    assert "AVAL" not in widget.session.user_id and "AVAL" not in _user_ids(path)
+    kept = [p for p in path.parent.iterdir() if p != path and "AVAL" in _user_ids(p)]
+    assert len(kept) == 1 and kept[0].name.endswith(".json")
+    assert any(str(kept[0]) in m for m in _notifications_since(before))
+
+
+def _user_ids(path):
+    try:
+        return json.loads(path.read_text())["neurons"]["user_id"]
+    except (ValueError, KeyError, TypeError):
+        return []
+
+
+def _label_a_copy_of_the_sample(viewer, sample_files, identifier, templates, tmp_path):
+    stack_path = tmp_path / "worm.ome.tif"
+    shutil.copy(sample_files[0], stack_path)
+    viewer.open(stack_path, plugin="napari-fdlc")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    widget.auto_label()
+    row = int(np.flatnonzero(np.asarray(widget.session.auto_id) != "")[0])
+    widget.accept(row)
+    return stack_path, widget.session.path
+
+
+def test_a_session_that_cannot_be_restored_is_reported_in_the_gui(make_napari_viewer, sample_files, identifier, templates, tmp_path):
+    """Reopening an image whose session file cannot be read (here: written by a newer
+    napari-fdlc) says so in napari (it used to say so on stderr only)."""
+    from napari.utils.notifications import notification_manager
+
+    stack_path, session_path = _label_a_copy_of_the_sample(make_napari_viewer(), sample_files, identifier, templates, tmp_path)
+    saved = json.loads(session_path.read_text())
+    session_path.write_text(json.dumps({**saved, "version": saved["version"] + 1}))
+    before = len(notification_manager.records)
+    layers = make_napari_viewer().open(stack_path, plugin="napari-fdlc")
+    assert [type(layer).__name__ for layer in layers] == ["Image"] * 4  # not restored ...
+    messages = _notifications_since(before)
+    assert any("not restored" in m or "newer napari-fdlc" in m for m in messages), messages  # ... say so
+
+
+def test_auto_label_never_overwrites_a_session_file_it_could_not_read(make_napari_viewer, sample_files, identifier, templates, tmp_path):
+    """... and Auto-label on that image keeps the unreadable file (set aside) instead of
+    writing a new session over it."""
+    stack_path, session_path = _label_a_copy_of_the_sample(make_napari_viewer(), sample_files, identifier, templates, tmp_path)
+    saved = json.loads(session_path.read_text())
+    newer = json.dumps({**saved, "version": saved["version"] + 1})
+    session_path.write_text(newer)
+    viewer = make_napari_viewer()
+    viewer.open(stack_path, plugin="napari-fdlc")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    widget.auto_label()
+    kept = [p for p in tmp_path.iterdir() if p.is_file() and p.read_text(errors="replace") == newer]
+    assert kept, "the unreadable session file was overwritten"
+
+
+def test_an_image_without_a_file_does_not_get_another_images_session(make_napari_viewer, identifier, templates, qtbot):
+    """Images made in napari (a script, the console, another plugin) have no file: their
+    session is keyed by the layer's name and a fingerprint of its data, so another image with
+    the same layer name (here another worm: the sample mirrored) does not get the first one's
+    neuron IDs (it used to: the key was the name alone)."""
+    from napari_fdlc.sample import load_sample
+
+    stack, _ = load_sample()
+    scale = stack.voxel_size_zyx
+    viewer = make_napari_viewer()
+    viewer.add_image(stack.data[3], name="W", scale=scale, colormap="gray")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    assert widget.auto_label() is not None
+    for i in np.flatnonzero(np.asarray(widget.session.auto_id) != "")[:20]:
+        widget.accept(int(i))
+
+    other = make_napari_viewer()  # another day, another worm
+    _, widget2 = other.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    other.add_image(stack.data[3][:, :, ::-1].copy(), name="W", scale=scale, colormap="gray")
+    qtbot.wait(100)
+    restored = [layer.name for layer in other.layers if type(layer).__name__ == "Points"]
+    assert restored == [], restored
+
+
+def test_duplicating_the_neuron_id_layer_leaves_the_review_on_it(labelled_viewer):
+    """Duplicate Layer on the neuron-ID layer (e.g. to keep a copy): the review stays on the
+    original, the copy is a plain points layer (the widget used to move to the copy, and points
+    then edited in the original were neither followed nor saved)."""
+    from napari.layers._layer_actions import _duplicate_layer
+
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    n = len(widget.session)
+    viewer.layers.selection = {layer}
+    _duplicate_layer(viewer.layers)
+    assert widget.layer is layer, f"the widget now reviews '{widget.layer.name}'"
+    layer.selected_data = {0}
+    layer.remove_selected()
+    assert len(widget.session) == n - 1
+
+
+def test_closing_the_widget_while_it_runs_then_docking_it_again(make_napari_viewer, sample_files, identifier, templates, qtbot):
+    """Close the Auto-label dock while Auto-label runs, dock it again: the closed widget's result
+    is dropped (it used to link the result layer to itself, so that its keys acted on a session
+    the docked widget did not show and both wrote one session file); the docked widget's own
+    run and its keys work as usual."""
+    viewer = make_napari_viewer()
+    viewer.open_sample("napari-fdlc", "neuropal")
+    dock, old = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    old.identifier = _Slow(identifier, 1.0)
+    old.set_templates(templates)
+    old.auto_label(wait=False)
+    viewer.window.remove_dock_widget(dock)
+    _, new = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    new.identifier = identifier
+    new.set_templates(templates)
+    assert old.wait(timeout=30)
+    qtbot.wait(50)
+    from napari_fdlc._napari._layers import META_KEY
+
+    assert old.layer is None and not any("session" in (layer.metadata.get(META_KEY) or {}) for layer in viewer.layers)
+    layer = new.auto_label()
+    assert layer is not None and new.layer is layer
+    row = int(np.flatnonzero(np.asarray(new.session.auto_id) != "")[0])
+    layer.selected_data = {row}
+    viewer.layers.selection.active = layer
+    viewer.window._qt_viewer._key_map_handler.press_key("A")  # accept, by key
+    other = int(np.flatnonzero(np.asarray(new.session.auto_id) != "")[1])
+    new.accept(other)  # accept another, with the docked widget's button
+    saved = json.loads(new.session.path.read_text())["neurons"]["status"]
+    assert (saved[row], saved[other]) == ("accepted", "accepted")
+
+
+def test_reopening_a_recording_restores_its_neuron_ids(make_napari_viewer, recording, identifier, templates, tmp_path):
+    """docs/gui.md: Auto-label on a recording's layers names its first time point, and
+    reopening the image restores the neuron-ID layer (for a recording the reader used to skip
+    the saved session, and a widget docked afterwards did not bring it back)."""
+    path = tmp_path / "worm rec.ome.tif"
+    shutil.copy(recording[0], path)
+    viewer = make_napari_viewer()
+    viewer.open(path, plugin="napari-fdlc")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    assert widget.auto_label() is not None, widget.last_error
+    widget.assign(0, "AVAL")
+    assert widget.session.path.is_file()
+
+    again = make_napari_viewer()
+    layers = again.open(path, plugin="napari-fdlc")
+    _, widget2 = again.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    names = [layer.name for layer in again.layers]
+    assert widget2.session is not None and widget2.session.user_id[0] == "AVAL", names
+
+
+def test_review_keys_on_an_earlier_neuron_id_layer_act_on_that_layer(labelled_viewer, tmp_path):
+    """Two worms in one viewer: Auto-label worm A, then worm B; select a neuron in A's layer
+    and press A: A's neuron is accepted (the keys used to act on B's session)."""
+    from napari_fdlc._napari._layers import stack_layers
+    from napari_fdlc.sample import load_sample
+
+    viewer, widget = labelled_viewer
+    layer_a = widget.auto_label()
+    stack, _ = load_sample()
+    for data, kwargs, _ in stack_layers(stack, name="worm B", source_key=str(tmp_path / "worm B.ome.tif")):
+        viewer.add_image(data, **kwargs)
+    widget.set_channels(**{r: f"worm B [{r}]" for r in "RGBW"})
+    widget.set_neurons("segment")
+    layer_b = widget.auto_label()
+    assert layer_b is not layer_a
+    row = int(np.flatnonzero(layer_a.features["auto_id"].to_numpy(object) != "")[0])
+    row_b = int(np.flatnonzero(layer_b.features["auto_id"].to_numpy(object) != "")[1])
+    widget.select_neuron(row_b)  # B was being reviewed
+    viewer.layers.selection.active = layer_a
+    layer_a.selected_data = {row}
+    viewer.window._qt_viewer._key_map_handler.press_key("A")
+    got = (layer_a.features["status"][row], layer_b.features["status"][row_b])
+    assert got == ("accepted", "auto"), f"A's neuron: {got[0]}, B's neuron: {got[1]}"
+
+
+def test_a_2d_image_gets_a_message_that_says_so(make_napari_viewer, identifier, templates):
+    """Only a 2D image (e.g. a max projection): Auto-label says a 3D stack is needed (it used
+    to ask for the W channel layer, which the user could not pick)."""
+    from napari_fdlc.sample import load_sample
+
+    stack, _ = load_sample()
+    viewer = make_napari_viewer()
+    viewer.add_image(stack.data[3].max(0), name="max projection")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    widget.run_button.click()
+    assert widget.last_error is not None and ("2D" in widget.last_error or "3D" in widget.last_error), widget.last_error
