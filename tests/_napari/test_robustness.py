@@ -360,3 +360,16 @@ def test_a_2d_image_gets_a_message_that_says_so(make_napari_viewer, identifier, 
     widget.set_templates(templates)
     widget.run_button.click()
     assert widget.last_error is not None and ("2D" in widget.last_error or "3D" in widget.last_error), widget.last_error
+
+
+def test_points_of_several_time_points_are_refused_as_neurons(labelled_viewer):
+    """The Track widget's points (t, z, y, x) chosen as Neurons: refused with a message (they
+    used to be pooled into one worm of every time point)."""
+    viewer, widget = labelled_viewer
+    truth = viewer.layers["sample neurons (truth)"]
+    zyx = np.asarray(truth.data)
+    tracked = np.vstack([np.column_stack([np.full(len(zyx), t), zyx]) for t in (0, 1)])
+    viewer.add_points(tracked, scale=(1,) + tuple(truth.scale), name="tracks at t")
+    widget.set_neurons("tracks at t")
+    widget.run_button.click()
+    assert widget.last_error is not None and "several time points" in widget.last_error

@@ -198,6 +198,9 @@ def layer_xyz_um(layer) -> np.ndarray:
     data = np.asarray(layer.data, dtype=float)
     if data.ndim != 2 or data.shape[1] < 3:
         raise FdlcError(f"layer '{layer.name}': neurons need 3D points (z, y, x); this layer has {data.shape[1] if data.ndim == 2 else 0} dimensions")
+    if data.shape[1] > 3 and len(data) and np.ptp(data[:, :-3], axis=0).max() > 0:
+        # e.g. the Track widget's points: one worm is one time point
+        raise FdlcError(f"layer '{layer.name}' holds points of several time points; neurons of one volume are needed")
     data = data[:, -3:]
     scale = np.asarray(layer.scale, dtype=float)[-3:]
     translate = np.asarray(layer.translate, dtype=float)[-3:]
