@@ -373,3 +373,17 @@ def test_points_of_several_time_points_are_refused_as_neurons(labelled_viewer):
     widget.set_neurons("tracks at t")
     widget.run_button.click()
     assert widget.last_error is not None and "several time points" in widget.last_error
+
+
+def test_a_renamed_neuron_id_layer_comes_back_under_its_new_name(make_napari_viewer, sample_files, identifier, templates, tmp_path):
+    """Rename the neuron-ID layer, reopen the image: it is restored under the new name."""
+    stack_path, session_path = _label_a_copy_of_the_sample(make_napari_viewer(), sample_files, identifier, templates, tmp_path)
+    saved = json.loads(session_path.read_text())
+    assert saved["settings"]["layer_name"] != "worm 1 reviewed"
+    viewer = make_napari_viewer()
+    layers = viewer.open(stack_path, plugin="napari-fdlc")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    assert widget.layer is layers[-1]
+    widget.layer.name = "worm 1 reviewed"
+    again = make_napari_viewer().open(stack_path, plugin="napari-fdlc")
+    assert again[-1].name == "worm 1 reviewed"

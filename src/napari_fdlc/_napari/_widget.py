@@ -984,6 +984,7 @@ class AutoLabelWidget(QWidget):
         self.layer = layer
         session.connect(self._on_session)
         layer.events.data.connect(self._on_layer_data)
+        layer.events.name.connect(self._on_layer_renamed)
         layer.selected_data.events.items_changed.connect(self._on_selection)
         self._bind_keys(layer)
         self._refresh_layer(structure=True)
@@ -997,7 +998,8 @@ class AutoLabelWidget(QWidget):
         self._refresh_all()
 
     def _disconnect_layer(self, layer) -> None:
-        for signal, slot in ((layer.events.data, self._on_layer_data), (layer.selected_data.events.items_changed, self._on_selection)):
+        for signal, slot in ((layer.events.data, self._on_layer_data), (layer.events.name, self._on_layer_renamed),
+                             (layer.selected_data.events.items_changed, self._on_selection)):
             try:
                 signal.disconnect(slot)
             except (TypeError, RuntimeError, ValueError):
@@ -1041,6 +1043,12 @@ class AutoLabelWidget(QWidget):
             else:
                 layer.shown = np.ones(len(session), dtype=bool)
             layer.refresh_text()
+
+    def _on_layer_renamed(self, *_) -> None:
+        """The neuron-ID layer renamed: reopening the image brings it back under that name."""
+        if self.session is not None and self.layer is not None and not self._guard:
+            self.session.settings["layer_name"] = self.layer.name
+            self.session.autosave()
 
     def _on_layer_data(self, event) -> None:
         """Points added, removed or moved by hand: the session follows (undoable)."""
