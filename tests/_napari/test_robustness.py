@@ -387,3 +387,16 @@ def test_a_renamed_neuron_id_layer_comes_back_under_its_new_name(make_napari_vie
     widget.layer.name = "worm 1 reviewed"
     again = make_napari_viewer().open(stack_path, plugin="napari-fdlc")
     assert again[-1].name == "worm 1 reviewed"
+
+
+def test_a_key_with_several_neurons_selected_names_none_of_them(labelled_viewer):
+    """Box-select several neurons and press A: a message asks for one (the key used to act on
+    the neuron shown last, which may be none of those selected)."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    widget.select_neuron(5)
+    layer.selected_data = {0, 1, 2}
+    viewer.layers.selection.active = layer
+    viewer.window._qt_viewer._key_map_handler.press_key("A")
+    assert set(widget.session.status) == {"auto"}
+    assert "3 neurons are selected" in widget.last_error

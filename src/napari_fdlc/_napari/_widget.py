@@ -1229,6 +1229,9 @@ class AutoLabelWidget(QWidget):
             i = int(next(iter(self.layer.selected_data)))
             if i < len(session):
                 return i
+        if self.layer is not None and len(self.layer.selected_data) > 1:
+            # not the neuron last shown, which may be none of them
+            raise FdlcError(f"{len(self.layer.selected_data)} neurons are selected: click the one to name")
         if session.current is None:
             raise FdlcError("no neuron selected: click a point, or press N to go to the next one")
         return session.current
