@@ -496,6 +496,9 @@ class AutoLabelWidget(QWidget):
     def _on_layer_removed(self, event) -> None:
         if event.value is self.layer:
             self._unlink()
+        if self._stack is not None and is_image_layer(event.value) and not any(
+                is_image_layer(layer) and image_key_of(layer) == self._stack.source for layer in self.viewer.layers):
+            self._stack = None  # its image is closed: do not keep a copy of it
         self._refresh_choices()
 
     def _adopt_existing(self) -> None:
