@@ -56,10 +56,9 @@ def segment_recording(args: argparse.Namespace, path: str, prog: str) -> tuple[l
     were found (0-based), their neuron tables, and the recording's number of time points.
     Progress lines on stderr (unless ``args.quiet``) for a recording or a big stack."""
     from .io.images import read_series
-    from .segment import segment_series, segment_stack
+    from .segment import check_detection_options, segment_series, segment_stack
 
-    if not (args.diameter_um > 0):
-        raise FdlcError(f"--diameter-um must be a positive number of µm (got {args.diameter_um})")
+    check_detection_options(args.diameter_um, args.threshold, names=("--diameter-um", "--threshold"))
     series = read_series(path, voxel_size=args.voxel_size, channels=args.channels, axes=args.axes)
     z, y, x = series.shape_zyx
     start = time.monotonic()

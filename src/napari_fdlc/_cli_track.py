@@ -14,6 +14,7 @@ track also gets the reference neuron's name. Output: one CSV, one row per neuron
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -56,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .table import read_table, warn_implausible_scales, write_table
+    from .table import read_table, refuse_time_points, warn_implausible_scales, write_table
     from .track import TrackSettings, read_sequence, track
 
     settings = TrackSettings(search=args.search, placement=args.placement, refine_steps=args.refine_steps,
@@ -66,7 +67,13 @@ def run(args: argparse.Namespace) -> int:
     if args.threads is not None and args.threads < 1:
         raise FdlcError(f"--threads must be at least 1 (got {args.threads})")
     # Validate every input before any model work (the references before a recording's segmentation).
+    for raw in args.reference_t:
+        _time_value(raw)
+    if args.method != "fdlc" and len(args.reference) + len(args.reference_t) > 1:
+        raise FdlcError(f"--method {args.method} takes one reference")
     references = [read_table(r) for r in args.reference]
+    for r in references:
+        refuse_time_points(r, "a reference is one volume: give one time point (or name it with --reference-t)")
     recording = _image_recording(args.inputs)
     if recording is None:
         seq = read_sequence(args.inputs)
@@ -78,8 +85,6 @@ def run(args: argparse.Namespace) -> int:
         seq = Sequence(volumes, times, [""] * len(volumes))
     for raw in args.reference_t:
         references.append(_volume_at(seq, raw))
-    if args.method != "fdlc" and len(references) > 1:
-        raise FdlcError(f"--method {args.method} takes one reference")
     warn_implausible_scales([seq.volumes[0], *references])
     identifier = follower = None
     if args.method == "fdlc":
@@ -121,11 +126,18 @@ def _image_recording(inputs: list[str]) -> str | None:
     return None
 
 
-def _volume_at(seq, raw: str):
+def _time_value(raw: str) -> float:
     try:
         value = float(raw)
     except ValueError:
-        raise FdlcError(f"--reference-t {raw}: not a number") from None
+        value = float("nan")
+    if not math.isfinite(value):
+        raise FdlcError(f"--reference-t {raw}: not a number")
+    return value
+
+
+def _volume_at(seq, raw: str):
+    value = _time_value(raw)
     for t, volume in zip(seq.times, seq.volumes):
         if float(t) == value:
             return volume

@@ -19,6 +19,7 @@ from scipy.spatial.distance import cdist
 
 from ._blas import one_blas_thread
 from .colour import IDENTITY_CHANNELS
+from .errors import FdlcError
 from .geometry import FLOOR_FLIPS, ORIENTATIONS, canonical_frame
 from .table import NeuronTable
 
@@ -35,7 +36,17 @@ def _one_hot(n: int, m: int, rows, cols) -> np.ndarray:
     return probs
 
 
+def _check_spread(*tables: NeuronTable, method: str) -> None:
+    """The baselines scale each table by its spread and CPD fits a Gaussian width to it: a table
+    of fewer than 3 distinct positions has none (a division by zero, then NaN everywhere)."""
+    for t in tables:
+        distinct = len(np.unique(np.round(np.asarray(t.xyz, float), 6), axis=0))
+        if distinct < 3:
+            raise FdlcError(f"{t.source}: {distinct} distinct neuron position(s); the {method} baseline needs at least 3")
+
+
 def floor_match(template: NeuronTable, test: NeuronTable, use_colour: bool = False) -> np.ndarray:
+    _check_spread(template, test, method="non-learned floor")
     a, _, _ = canonical_frame(template.xyz)
     b, _, _ = canonical_frame(test.xyz)
     b = b * _rms(a) / _rms(b)
@@ -69,6 +80,7 @@ def cpd_match(template: NeuronTable, test: NeuronTable, use_colour: bool = False
 def cpd_search(template: NeuronTable, test: NeuronTable, max_iterations: int = 50) -> tuple[np.ndarray, np.ndarray]:
     """:func:`cpd_match`, also returning the deformed template in the test's own µm (where a CPD
     tracker starts the next volume from)."""
+    _check_spread(template, test, method="CPD")
     a, _, _ = canonical_frame(template.xyz)
     b, centre, rotation = canonical_frame(test.xyz)
     a = a / _rms(a)
@@ -90,6 +102,7 @@ def cpd_follow(previous: np.ndarray, test: NeuronTable, max_iterations: int = 50
     """One CPD registration of ``previous`` (a deformed reference, µm, from the volume before)
     onto the next volume of the same recording: no orientation search, as a CPD tracker does.
     Returns the probabilities and the newly deformed reference (µm) for the volume after."""
+    _check_spread(test, method="CPD")
     x = np.asarray(test.xyz, float)
     centre = x.mean(axis=0)
     scale = _rms(x - centre)

@@ -18,7 +18,7 @@ from .errors import FdlcError, check_output, warn
 from .identify import (ADAPT_MIN_TESTS, FEW_NEURONS, Identifier, can_adapt_colours, colour_note, default_identifier,
                        harmonise, label_neurons, smaller_worm_note)
 from .match import Labelling, make_labelling, name_probabilities
-from .table import COORDS, NeuronTable, read_table, warn_implausible_scales, write_table
+from .table import COORDS, NeuronTable, read_table, refuse_time_points, warn_implausible_scales, write_table
 
 
 # Columns of an earlier ``fdlc label`` output: labelling that output again must not carry its
@@ -42,16 +42,6 @@ def labelling_frame(test: NeuronTable, result: Labelling, top_k: int = 3) -> pd.
         if c not in columns and c not in COORDS and c != "label" and not _OUTPUT_COLUMNS.fullmatch(c):
             columns[c] = given[c].to_numpy()
     return pd.DataFrame(columns)
-
-
-def _refuse_recording(table) -> None:
-    """A table of several time points (a ``t`` column, as ``fdlc segment`` writes for a
-    recording) is many volumes of one worm, not one worm: naming it whole would mix them."""
-    if table.text is not None and "t" in table.text.columns:
-        times = table.text["t"].astype(str).str.strip().nunique()
-        if times > 1:
-            raise FdlcError(f"{table.source}: a recording of {times} time points (a 't' column); fdlc label names one "
-                            "volume: give one time point, or follow them all with fdlc track --reference")
 
 
 def _output_paths(tests: list[str], out: str, inputs: list[str]) -> list[Path]:
@@ -107,7 +97,7 @@ def label_files(
     test_tables = [read_table(t, names=False) for t in tests]  # a test's names are not used
     template_tables = [read_table(t) for t in (templates or [])]
     for t in [*test_tables, *template_tables]:
-        _refuse_recording(t)
+        refuse_time_points(t, "fdlc label names one volume: give one time point, or follow them all with fdlc track --reference")
     for t in template_tables:
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron (a 'label' column with names is needed)")

@@ -52,6 +52,7 @@ from .io.images import ImageError, Stack, StackSeries
 from .table import NeuronTable
 
 Progress = Callable[[float, str], None]
+MAX_DIAMETER_UM = 20.0  # a nucleus diameter beyond this is not a nucleus (neurons' are 2-4 µm)
 FINE_SCALE = 0.8  # second detection scale, a fraction of the nucleus diameter (see detect_nuclei)
 # split_by_colour: a colour maximum between COLOUR_NEAR and FINE_SEPARATION diameters from a
 # detection (1.35-1.8 µm at 3 µm) is a nucleus of its own only where that colour is weaker than
@@ -75,15 +76,26 @@ def detection_image(stack: Stack) -> np.ndarray:
     """The Z, Y, X float32 volume that nuclei are found on: W, else the scaled sum of channels."""
     w = stack.role_index("W")
     if w is not None:
-        return np.asarray(stack.data[w], dtype=np.float32)
+        return stack.channel(w).astype(np.float32, copy=False)
     use = [i for i, r in enumerate(stack.channel_roles) if r not in ("GFP",)]
     total = np.zeros(stack.shape_zyx, dtype=np.float32)
     for i in use:
-        ch = np.asarray(stack.data[i], dtype=np.float32)
+        ch = stack.channel(i).astype(np.float32, copy=False)
         sub = ch[:: max(1, ch.shape[0] // 8), ::4, ::4]
         lo, hi = np.percentile(sub, [50, 99.9])
         total += (ch - lo) / max(hi - lo, 1e-6)  # equal weight per channel whatever its gain
     return total
+
+
+def check_detection_options(diameter_um: float, threshold: float, names=("nucleus diameter", "detection threshold")) -> None:
+    """Refuse a nucleus diameter or a detection threshold that cannot be meant (before any
+    work: a diameter of metres would bin the stack away, slowly); ``names`` say them as the
+    caller's options."""
+    if not (0 < diameter_um <= MAX_DIAMETER_UM):
+        raise ImageError(f"{names[0]} must be a number of µm above 0 and at most {MAX_DIAMETER_UM:g} "
+                         f"(C. elegans neuron nuclei are 2-4 µm; got {diameter_um})")
+    if not (np.isfinite(threshold) and threshold > 0):
+        raise ImageError(f"{names[1]} must be a positive number of noise SDs (got {threshold})")
 
 
 def _bin_factors(voxel_size_zyx, diameter_um: float) -> tuple[int, int, int]:
@@ -136,8 +148,7 @@ def detect_nuclei(
     diameters from every detection (None: one scale only). ``band_passed``: the volume's
     :func:`_band_pass` at this diameter when the caller has it already.
     """
-    if diameter_um <= 0 or not np.isfinite(diameter_um):
-        raise ImageError(f"nucleus diameter must be a positive number of µm (got {diameter_um})")
+    check_detection_options(diameter_um, threshold)
     vox = np.asarray(voxel_size_zyx, dtype=float)
     if min_distance_um is None:
         min_distance_um = 0.3 * diameter_um
@@ -376,7 +387,7 @@ def measure_colours(
     for i, role in enumerate(stack.channel_roles):
         if role is None or len(xyz_um) == 0:
             continue
-        ch = np.asarray(stack.data[i])
+        ch = stack.channel(i)
         value = _sample(ch, centres, inner, 75)
         if background:
             value = value - _sample(ch, centres, shell, 20)

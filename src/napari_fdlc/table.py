@@ -365,3 +365,13 @@ def write_neuropal_id(
     with atomic_write(path, "w", encoding="utf-8", newline="") as handle:
         handle.write("\n".join(preamble) + "\n")
         df.to_csv(handle, index=False)
+
+
+def refuse_time_points(table: NeuronTable, instead: str) -> None:
+    """Refuse a table of several time points (a ``t`` column, as ``fdlc segment`` writes for a
+    recording) where one volume is needed: it is many volumes of one worm, and taken whole it
+    would mix them. ``instead`` says what to give."""
+    if table.text is not None and "t" in table.text.columns:
+        times = table.text["t"].astype(str).str.strip().nunique()
+        if times > 1:
+            raise TableError(f"{table.source}: a recording of {times} time points (a 't' column); {instead}")

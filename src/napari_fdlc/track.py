@@ -51,7 +51,7 @@ from .errors import FdlcError, TableError
 from .geometry import Warp, canonical_frame, fit_warp, position_evidence, squared_distances
 from .match import assign, assign_log, min_cost_matching
 from .simulate import bend
-from .table import COORDS, NeuronTable, read_table
+from .table import COORDS, NeuronTable, read_table, refuse_time_points
 
 UNTRACKED = -1
 
@@ -165,16 +165,24 @@ def read_sequence(paths: list[str] | str) -> Sequence:
     if len(paths) == 1:
         path = Path(paths[0])
         if path.is_dir():
-            files = sorted((p for p in path.iterdir() if p.is_file() and p.suffix.lower() == ".csv"),
+            # hidden files are left out: e.g. macOS's "._name.csv" beside every copied file
+            files = sorted((p for p in path.iterdir() if p.is_file() and p.suffix.lower() == ".csv" and not p.name.startswith(".")),
                            key=lambda p: _natural_key(p.name))
             if not files:
                 raise FdlcError(f"{path}: the folder holds no .csv file")
-            return Sequence([read_table(f) for f in files], list(range(len(files))), [f.name for f in files])
+            return Sequence([_one_volume(f) for f in files], list(range(len(files))), [f.name for f in files])
         return split_by_time(read_table(path))
     missing = [p for p in paths if Path(p).is_dir()]
     if missing:
         raise FdlcError(f"{missing[0]}: a folder can only be given alone")
-    return Sequence([read_table(p) for p in paths], list(range(len(paths))), [Path(p).name for p in paths])
+    return Sequence([_one_volume(p) for p in paths], list(range(len(paths))), [Path(p).name for p in paths])
+
+
+def _one_volume(path) -> NeuronTable:
+    table = read_table(path)
+    refuse_time_points(table, "each file of a folder or list of CSVs is one volume: give a table of several "
+                              "time points alone")
+    return table
 
 
 def split_by_time(table: NeuronTable) -> Sequence:

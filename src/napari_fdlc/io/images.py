@@ -99,11 +99,19 @@ class Stack:
         return self.channel_roles.index(role) if role in self.channel_roles else None
 
     def channel(self, key: str | int) -> np.ndarray:
-        """One channel as an in-memory Z, Y, X numpy array (by role or index)."""
+        """One channel as an in-memory Z, Y, X numpy array (by role or index). Voxels that are
+        not finite numbers (NaN outside a registered region, inf) read as the channel's median:
+        background, instead of blanking every statistic taken over them."""
         index = self.role_index(key) if isinstance(key, str) else int(key)
         if index is None:
             raise ImageError(f"{self.source}: no {key} channel (roles: {self.channel_roles})")
-        return np.asarray(self.data[index])
+        channel = np.asarray(self.data[index])
+        if channel.dtype.kind == "f":
+            finite = np.isfinite(channel)
+            if not finite.all():
+                fill = np.median(channel[finite]) if finite.any() else 0.0
+                channel = np.where(finite, channel, fill).astype(channel.dtype)
+        return channel
 
     def extent_um(self) -> np.ndarray:
         """Size of the volume in µm, Z, Y, X."""
@@ -320,6 +328,8 @@ def finish_stack(
     axes = axes.upper()
     if len(axes) != data.ndim:
         raise ImageError(f"{source}: axes '{axes}' do not fit an image with {data.ndim} dimensions")
+    if len(set(axes)) != len(axes):
+        raise ImageError(f"{source}: axes '{axes}' name an axis twice; give each once, e.g. --axes TZCYX")
     # Singleton axes we do not use (a time series of one, one position, one sample) go away.
     index = tuple(0 if (a not in "CZYX" and data.shape[i] == 1) else slice(None) for i, a in enumerate(axes))
     if any(isinstance(i, int) for i in index):
@@ -418,11 +428,19 @@ def read_tiff(
         series = series_list[0]
         file_axes = series.axes
         shape = tuple(series.shape)
-        _check_tiff_complete(tif, series, source)
-        voxel, names = _tiff_metadata(tif)
+        with _tifffile_log() as problems:
+            try:  # both read every page's header: a damaged file fails here, in many ways
+                _check_tiff_complete(tif, series, source)
+                voxel, names = _tiff_metadata(tif)
+            except ImageError:
+                raise
+            except Exception as exc:
+                problems.append(_first_line(exc))
+        if problems:
+            raise ImageError(f"{source}: the TIFF is damaged or truncated ({problems[0]}); re-export it")
         nbytes = int(np.prod(shape)) * np.dtype(series.dtype).itemsize
         if nbytes > LAZY_BYTES:
-            data = _lazy_tiff(tif, series)
+            data = _lazy_tiff(tif, series, source)
         else:
             try:
                 data = series.asarray()
@@ -438,7 +456,7 @@ def read_tiff(
             raise ImageError(
                 f"{source}: axes '{axes}' given for an image with {data.ndim} dimensions {tuple(data.shape)}"
             )
-        file_axes = axes
+        file_axes = axes  # letters used twice are refused by finish_stack
     elif re.search(r"[QI]", file_axes):
         # Plain TIFFs do not record which axis is Z and which is C; guessing would mix them up.
         unknown = [n for a, n in zip(file_axes, data.shape) if a in "QI" and n > 1]
@@ -487,7 +505,7 @@ def _check_tiff_complete(tif, series, source: str) -> None:
             raise ImageError(f"{source}: the TIFF is truncated (image data past the end of the file); re-export it")
 
 
-def _lazy_tiff(tif, series):
+def _lazy_tiff(tif, series, source: str):
     """Dask array reading one TIFF page per chunk (tifffile's zarr store needs zarr, not a dependency)."""
     import dask
     import dask.array as da
@@ -499,7 +517,11 @@ def _lazy_tiff(tif, series):
 
     def load(i: int) -> np.ndarray:
         with lock:  # one file handle shared by all chunks
-            return pages[i].asarray()
+            try:
+                return pages[i].asarray()
+            except Exception as exc:  # read when a volume is needed: damaged data shows only now
+                raise ImageError(f"{source}: page {i} of the TIFF cannot be read ({_first_line(exc)}); "
+                                 "the file is damaged, re-export it") from None
 
     blocks = [
         da.from_delayed(dask.delayed(load)(i), shape=page_shape, dtype=series.dtype) for i in range(len(pages))

@@ -1,0 +1,225 @@
+"""Bad input to the readers and to ``fdlc segment`` / ``fdlc track`` / ``fdlc label``: one line
+on stderr, a non-zero exit, no traceback, no output written, no silently wrong answer. These
+came from a review of the command line (session 26); each says what used to happen."""
+
+from __future__ import annotations
+
+import signal
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+import tifffile
+
+from napari_fdlc.cli import main
+from napari_fdlc.io import images
+from napari_fdlc.io.images import Stack, write_tiff
+from napari_fdlc.table import NeuronTable, write_table
+from napari_fdlc.track import join_by_time
+
+
+def run(*args):
+    return main([str(a) for a in args])
+
+
+def one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("fdlc: error:"), err
+    return err[0]
+
+
+@pytest.fixture(scope="module")
+def small_stack():
+    """A small rendered 4-channel stack (R, G, B, W), 16 x 93 x 138 voxels."""
+    from napari_fdlc.render import random_worm, render_stack
+
+    worm = random_worm(20, size_um=(20, 10, 8), min_spacing_um=2.6, seed=1)
+    stack, _ = render_stack(worm, seed=1, peak_photons=200)
+    return stack
+
+
+class _Hung(Exception):
+    """Raised by the alarm below (not an OSError: main() would turn TimeoutError into a line)."""
+
+
+@pytest.fixture
+def seconds_limit():
+    def limit(seconds: int):
+        def handler(signum, frame):
+            raise _Hung(f"still running after {seconds} s")
+
+        signal.signal(signal.SIGALRM, handler)
+        signal.alarm(seconds)
+
+    yield limit
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, signal.SIG_DFL)
+
+
+# ----- image files -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("cut", [1000, 1655])
+def test_imagej_tiff_with_its_end_cut_off_is_one_line(tmp_path, small_stack, capsys, cut):
+    """An ImageJ hyperstack whose last bytes (its last IFDs) are missing: one line (tifffile's
+    IndexError / TiffFileError used to escape while the pages were checked)."""
+    path = tmp_path / "cut.tif"
+    write_tiff(path, small_stack, ome=False)
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) - cut])
+    out = tmp_path / "neurons.csv"
+    assert run("segment", path, "--out", out) == 2
+    assert str(path) in one_line(capsys)
+    assert not out.exists()
+
+
+def test_a_lazily_read_tiff_with_corrupt_data_is_one_line(tmp_path, small_stack, capsys, monkeypatch):
+    """Over LAZY_BYTES a TIFF is read lazily; a damaged compressed page is only decoded during
+    segmentation: one line naming the file (zlib.error used to escape)."""
+    path = tmp_path / "big.ome.tif"
+    write_tiff(path, small_stack)  # zlib
+    with tifffile.TiffFile(path) as tif:
+        page = tif.series[0].pages[3 * small_stack.shape_zyx[0] + 5]  # a W plane
+        offset, count = page.dataoffsets[0], page.databytecounts[0]
+    raw = bytearray(path.read_bytes())
+    raw[offset + count // 3: offset + count // 3 + 64] = b"\x00" * 64
+    path.write_bytes(bytes(raw))
+    monkeypatch.setattr(images, "LAZY_BYTES", 1000)
+    out = tmp_path / "neurons.csv"
+    assert run("segment", path, "--quiet", "--out", out) == 2
+    assert str(path) in one_line(capsys)
+    assert not out.exists()
+
+
+def test_axes_with_a_repeated_time_letter_are_one_line(tmp_path, capsys):
+    """--axes TTZYX: one line (it passed the length check, then the T transpose raised
+    'ValueError: axes don't match array')."""
+    path = tmp_path / "plain.tif"
+    tifffile.imwrite(path, np.zeros((2, 2, 4, 16, 16), np.uint16))
+    out = tmp_path / "neurons.csv"
+    assert run("segment", path, "--axes", "TTZYX", "--voxel-size", "1", "0.25", "0.25", "--out", out) == 2
+    assert "axes" in one_line(capsys)
+    assert not out.exists()
+
+
+def test_nan_voxels_do_not_blank_the_whole_stack(tmp_path, small_stack, capsys):
+    """A float stack with a small NaN patch in W (e.g. outside a registered region): the nuclei
+    are found as without it (the band-pass median used to become NaN and every nucleus was
+    lost, with an error that blamed the options)."""
+    data = np.asarray(small_stack.data, np.float32).copy()
+    data[3, 5:8, 40:50, 60:70] = np.nan
+    path = tmp_path / "patch.ome.tif"
+    write_tiff(path, Stack(data, small_stack.voxel_size_zyx, small_stack.channel_roles))
+    out = tmp_path / "neurons.csv"
+    code = run("segment", path, "--quiet", "--out", out)
+    err = capsys.readouterr().err
+    if code != 0:  # refusing is fine too, if it says why
+        assert len(err.strip().splitlines()) == 1 and ("NaN" in err or "finite" in err.lower() or "not a number" in err.lower()), err
+    else:
+        assert len(pd.read_csv(out)) >= 10
+
+
+def test_an_infinite_voxel_gives_no_python_warning(tmp_path, small_stack):
+    """One inf voxel: no numpy RuntimeWarning on stderr (two lines used to reach it)."""
+    data = np.asarray(small_stack.data, np.float32).copy()
+    data[3, 3, 3, 3] = np.inf
+    path = tmp_path / "edge.ome.tif"
+    write_tiff(path, Stack(data, small_stack.voxel_size_zyx, small_stack.channel_roles))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        run("segment", path, "--quiet", "--out", tmp_path / "neurons.csv")
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)], [str(w.message) for w in caught]
+
+
+# ----- fdlc segment / track options --------------------------------------------------------------
+
+
+def test_an_absurd_diameter_is_refused_quickly(tmp_path, small_stack, capsys, seconds_limit):
+    """--diameter-um 1e6: refused at once (the binning factors exceeded the stack and the
+    binning loop over np.ndindex(*factors), ~1e16 steps, never ended)."""
+    path = tmp_path / "worm.ome.tif"
+    write_tiff(path, small_stack)
+    out = tmp_path / "neurons.csv"
+    seconds_limit(6)
+    code = run("segment", path, "--diameter-um", "1e6", "--out", out)
+    assert code == 2 and "diameter" in one_line(capsys)
+    assert not out.exists()
+
+
+def test_a_nan_threshold_is_refused_as_such(tmp_path, small_stack, capsys):
+    """--threshold nan is refused as such (it used to find nothing and say to lower it)."""
+    path = tmp_path / "worm.ome.tif"
+    write_tiff(path, small_stack)
+    assert run("segment", path, "--threshold", "nan", "--out", tmp_path / "neurons.csv") == 2
+    line = one_line(capsys)
+    assert "--threshold" in line and "no nuclei" not in line, line
+
+
+@pytest.mark.parametrize("extra", [["--reference-t", "abc"], ["--method", "cpd", "--reference-t", "0", "--reference-t", "1"]],
+                         ids=["non-numeric-reference-t", "cpd-with-two-references"])
+def test_track_recording_options_are_checked_before_segmenting(tmp_path, recording, capsys, extra):
+    """docs/tracking.md: bad input is refused 'before any work'; on a recording these were
+    checked only after every time point was segmented."""
+    path, _, _ = recording
+    out = tmp_path / "tracks.csv"
+    assert run("track", path, *extra, "--out", out) == 2
+    one_line(capsys)  # no 'segmented i/T time points' progress lines before the error
+    assert not out.exists()
+
+
+# ----- fdlc track / label on tables ----------------------------------------------------------------
+
+
+def _one_neuron_sequence(worm, path):
+    volumes = [NeuronTable(worm.xyz[:1] + [k, 0, 0], {c: v[:1] for c, v in worm.colours.items()}) for k in range(2)]
+    write_table(join_by_time(volumes).drop(columns=["label"]), path)
+    return path
+
+
+@pytest.mark.parametrize("method", ["cpd", "geometry"])
+def test_track_one_neuron_volumes_with_the_baselines(tmp_path, worm, capsys, method):
+    """Volumes of one neuron with the baselines: an answer or one line (the floor divided by a
+    spread of 0 and CPD's width was 0: 'ValueError: matrix contains invalid numeric entries')."""
+    src = _one_neuron_sequence(worm, tmp_path / "seq.csv")
+    out = tmp_path / "tracks.csv"
+    code = run("track", src, "--method", method, "--quiet", "--out", out)
+    if code != 0:
+        one_line(capsys)
+        assert not out.exists()
+
+
+def test_label_cpd_one_neuron_against_one_neuron(tmp_path, worm, capsys):
+    one = tmp_path / "one.csv"
+    write_table(worm.subset([0]), one)
+    out = tmp_path / "out.csv"
+    code = run("label", one, "--template", one, "--method", "cpd", "--out", out)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and (code == 0 or len(err.strip().splitlines()) <= 2), err
+
+
+def test_track_a_folder_whose_table_holds_several_time_points(tmp_path, worm, capsys):
+    """A folder (or list) of CSVs is one volume per file: a file with a t column of two time
+    points is refused (it used to be taken silently as one volume of both, its t lost)."""
+    folder = tmp_path / "vols"
+    shifted = [NeuronTable(worm.xyz + [k, 0.5 * k, 0], worm.colours) for k in range(3)]
+    write_table(join_by_time(shifted[:2]).drop(columns=["label"]), folder / "a.csv")
+    write_table(shifted[2], folder / "b.csv")
+    out = tmp_path / "tracks.csv"
+    code = run("track", folder, "--method", "geometry", "--quiet", "--out", out)
+    if code == 0:
+        df = pd.read_csv(out)
+        assert df.groupby(["t", "file"]).size().max() <= len(worm), df.groupby(["t", "file"]).size()
+    else:
+        assert "t" in one_line(capsys)
+
+
+def test_track_reference_with_several_time_points_is_refused(tmp_path, worm, capsys):
+    """--reference seq.csv where seq.csv has a t column of 2 time points: refused (it used to be
+    one reference of both time points merged)."""
+    seq = tmp_path / "seq.csv"
+    write_table(join_by_time([NeuronTable(worm.xyz + [k, 0, 0], worm.colours) for k in range(2)]).drop(columns=["label"]), seq)
+    out = tmp_path / "tracks.csv"
+    assert run("track", seq, "--reference", seq, "--method", "geometry", "--quiet", "--out", out) == 2
+    assert "time point" in one_line(capsys)
+    assert not out.exists()
