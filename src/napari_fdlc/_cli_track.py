@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     settings = TrackSettings(search=args.search, placement=args.placement, refine_steps=args.refine_steps,
                              chunk=args.chunk, use_colour=not args.no_colour, follow_with=args.follow_with)
     settings.check()
-    out = check_output(args.out, [*args.inputs, *args.reference])
+    out = check_output(args.out, [*args.inputs, *args.reference], create_folder=True)  # as fdlc segment
     if args.threads is not None and args.threads < 1:
         raise FdlcError(f"--threads must be at least 1 (got {args.threads})")
     # Validate every input before any model work (the references before a recording's segmentation).

@@ -49,6 +49,7 @@ _UNIT_TO_UM = {
     "nm": 1e-3, "nanometer": 1e-3, "nanometers": 1e-3,
     "mm": 1e3, "millimeter": 1e3, "millimeters": 1e3,
     "cm": 1e4, "m": 1e6, "meter": 1e6, "meters": 1e6,
+    "å": 1e-4, "angstrom": 1e-4, "pm": 1e-6,  # OME allows them (compared in lower case)
 }
 
 
