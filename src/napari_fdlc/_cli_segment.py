@@ -50,16 +50,19 @@ def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def segment_recording(args: argparse.Namespace, path: str, prog: str) -> tuple[list[int], list, int]:
+def segment_recording(args: argparse.Namespace, path: str, prog: str, check=None) -> tuple[list[int], list, int]:
     """Read ``path`` as a recording (a single stack is a recording of one) and segment every
     time point with the options of :func:`add_stack_arguments`: the time points where nuclei
     were found (0-based), their neuron tables, and the recording's number of time points.
-    Progress lines on stderr (unless ``args.quiet``) for a recording or a big stack."""
+    Progress lines on stderr (unless ``args.quiet``) for a recording or a big stack.
+    ``check(series)``, before any segmentation, may refuse what the recording cannot give."""
     from .io.images import read_series
     from .segment import check_detection_options, segment_series, segment_stack
 
     check_detection_options(args.diameter_um, args.threshold, names=("--diameter-um", "--threshold"))
     series = read_series(path, voxel_size=args.voxel_size, channels=args.channels, axes=args.axes)
+    if check is not None:
+        check(series)
     z, y, x = series.shape_zyx
     start = time.monotonic()
     options = dict(diameter_um=args.diameter_um, threshold=args.threshold, unmix=not args.no_unmix,

@@ -81,7 +81,13 @@ def run(args: argparse.Namespace) -> int:
         from ._cli_segment import segment_recording
         from .track import Sequence
 
-        times, volumes, _ = segment_recording(args, recording, "fdlc track")
+        def time_points_exist(series) -> None:
+            for raw in args.reference_t:
+                value = _time_value(raw)
+                if not (value.is_integer() and 0 <= value < len(series)):
+                    raise FdlcError(f"--reference-t {raw}: the recording has time points 0 to {len(series) - 1}")
+
+        times, volumes, _ = segment_recording(args, recording, "fdlc track", check=time_points_exist)
         seq = Sequence(volumes, times, [""] * len(volumes))
     for raw in args.reference_t:
         references.append(_volume_at(seq, raw))

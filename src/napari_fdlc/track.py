@@ -196,6 +196,10 @@ def split_by_time(table: NeuronTable) -> Sequence:
     if bad.any():
         row = int(np.argmax(bad))
         raise TableError(f"{name}: line {row + 2}, column 't': {raw.iloc[row] or 'an empty cell'} is not a finite number")
+    if raw.str.fullmatch(r"[+-]?\d+").all():
+        # whole numbers (frame numbers, timestamps in ns) compared exactly: beyond 2**53 two of
+        # them can be one float
+        t = np.array([int(v) for v in raw], dtype=object)
     values = np.unique(t)
     volumes, times = [], []
     for v in values:
@@ -317,15 +321,24 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
     searched = [False] * len(chunk)
     last = len(chunk) - 1
     if s.search == "full" or ref.warp is None:
-        first = list(range(len(chunk))) if s.search == "full" else [0]
+        # a volume without neurons has nothing to search with: the first one with neurons is
+        # searched (every one, with search="full")
+        with_neurons = [i for i in range(len(chunk)) if len(chunk[i])]
+        first = with_neurons if s.search == "full" else with_neurons[:1]
         for i, out in zip(first, _full_search(identifier, ref, [chunk[i] for i in first], s)):
             found[i] = _finish(identifier, ref, chunk[i], out, s)
             searched[i] = True
-        if ref.warp is None:
-            ref.warp = found[0]["warp"]
-        if ref.first_rate is None and s.placement == "model":
+        if ref.warp is None and first:
+            ref.warp = found[first[0]]["warp"]
+        if ref.first_rate is None and s.placement == "model" and first:
             # the yardstick for "lost" below, from the model that answers those volumes
-            ref.first_rate = _match_rate(_placed(follower, ref, [chunk[0]], [ref.warp], s)[0][0])
+            ref.first_rate = _match_rate(_placed(follower, ref, [chunk[first[0]]], [ref.warp], s)[0][0])
+    for i in range(len(chunk)):
+        if found[i] is None and not len(chunk[i]):  # no rows to answer
+            found[i] = {"log_p": np.zeros((0, len(ref.xyz) + 1)), "choice": np.zeros(0, dtype=int),
+                        "warp": ref.warp, "rate": 0.0, "searched": False}
+    if ref.warp is None:  # no volume with neurons yet: the next chunk searches
+        return found
     rest = [i for i in range(len(chunk)) if found[i] is None]
     chain = ref.warp
     if rest:
@@ -356,11 +369,12 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
                 again = _finish(identifier, ref, chunk[i], out, s)
                 if again["rate"] > found[i]["rate"]:
                     found[i], searched[i] = again, True
+    placed = [k for k in range(len(chunk)) if len(chunk[k])]
     for step in range(s.refine_steps):
-        outs = _placed(follower, ref, chunk, [f["warp"] for f in found], s)
+        outs = _placed(follower, ref, [chunk[k] for k in placed], [found[k]["warp"] for k in placed], s)
         more = step < s.refine_steps - 1
-        found = [_finish(follower, ref, v, out, s, fit=more or k == last)
-                 for k, (v, out) in enumerate(zip(chunk, outs))]
+        for k, out in zip(placed, outs):
+            found[k] = _finish(follower, ref, chunk[k], out, s, fit=more or k == last)
     for f, flag in zip(found, searched):
         f["searched"] = flag
     if s.placement == "model" or not rest:
@@ -440,7 +454,6 @@ def track(
         from .identify import default_tracker
 
         follower = identifier if s.follow_with == "full" else default_tracker(identifier.device)
-    use_colour = s.use_colour
     ids = _link_references(identifier, follower, tables, s)
     refs = [_Reference(t, i) for t, i in zip(tables, ids)]
     n_ids = int(max(i.max() for i in ids)) + 1
@@ -453,10 +466,10 @@ def track(
     total = len(seq)
     for start in range(0, total, s.chunk):
         chunk = seq.volumes[start : start + s.chunk]
-        per_ref = []
-        for ref in refs:
-            s_ref = s if use_colour and _has_colour(ref.table, chunk[0]) else _no_colour(s)
-            per_ref.append(_match_chunk(identifier, follower, ref, chunk, s_ref))
+        # Colour is used where a volume and the reference share a channel: each volume's colour
+        # evidence checks its own (a chunk's first volume does not decide for the chunk, so
+        # that the chunk size does not change the answers).
+        per_ref = [_match_chunk(identifier, follower, ref, chunk, s) for ref in refs]
         for k in range(len(chunk)):
             found = [pr[k] for pr in per_ref]
             if s.combine == "best" or len(refs) == 1:
@@ -478,12 +491,6 @@ def track(
         if progress is not None:
             progress(min(start + s.chunk, total), total)
     return result
-
-
-def _no_colour(s: TrackSettings) -> TrackSettings:
-    from dataclasses import replace
-
-    return replace(s, use_colour=False)
 
 
 def _assign_ids(probs: np.ndarray, no_match_weight: float) -> tuple[np.ndarray, np.ndarray]:
@@ -533,7 +540,8 @@ def _track_geometry(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, 
             warp = fit_warp(vol.xyz, ref.xyz[np.maximum(choice, 0)], ok.astype(float), s.warp_sigma_um, s.warp_smoothness)
         warp, choice = _geometric_step(ref, vol, warp, s, pairs=True)
         result.track_id.append(choice)
-        result.confidence.append((choice >= 0).astype(float))
+        # the chain is certain either way: of the partner it pairs, or that there is none
+        result.confidence.append(np.ones(len(choice)))
         result.info.append({"reference": 0})
         if progress is not None:
             progress(k + 1, len(seq))

@@ -179,3 +179,15 @@ def test_track_widget_follows_a_renamed_recording(make_napari_viewer):
     viewer.layers["rec"].name = "worm 7"
     items = [track.source_combo.itemText(i) for i in range(track.source_combo.count())]
     assert "recording: worm 7" in items, items
+
+
+def test_a_reference_of_several_time_points_is_refused(track_widget, sequence_csv):
+    """A table of several time points given as the reference: one line, as `fdlc track
+    --reference` gives (the widget used to take the whole recording as one reference volume)."""
+    viewer, widget = track_widget
+    path, _, _ = sequence_csv
+    widget.set_sequence(path)
+    widget.set_reference(path)
+    assert widget.run() is None
+    assert "time points" in widget.last_error and "\n" not in widget.last_error
+    assert not any(type(layer).__name__ in ("Tracks", "Points") for layer in viewer.layers)

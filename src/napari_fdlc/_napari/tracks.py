@@ -305,10 +305,12 @@ class TrackWidget(QWidget):
 
         @thread_worker(start_thread=False, ignore_errors=True)
         def work():
-            from ..table import read_table
+            from ..table import read_table, refuse_time_points
             from ..track import Sequence, TrackSettings, read_sequence, track
 
             references = [read_table(reference_path)] if reference_path else None
+            for r in references or ():
+                refuse_time_points(r, "a reference is one volume: give one time point")
             if channels is not None:
                 from ..segment import segment_series
 

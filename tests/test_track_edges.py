@@ -1,0 +1,110 @@
+"""fdlc track at its edges: the baselines' confidences, colour in some volumes only, time
+values of every kind, empty volumes, options refused before any work. These came from a review
+of the tracking feature (session 26); each says what used to happen."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from napari_fdlc.cli import main
+from napari_fdlc.errors import FdlcError
+from napari_fdlc.table import NeuronTable, write_table
+from napari_fdlc.track import SequenceParams, TrackSettings, join_by_time, simulate_sequence, track
+
+GENTLE = SequenceParams(frames=4, bend_curvature=0.002, roll=0.05, xy_rotation=0.3, drift_um=4.0,
+                        drop_fraction=(0.0, 0.05), max_spurious=4, jitter_um=0.2)
+
+
+@pytest.fixture(scope="module")
+def gentle(worm):
+    return simulate_sequence(worm, 3, GENTLE)
+
+
+@pytest.fixture(scope="module")
+def identifier(untrained_weights):
+    from napari_fdlc.identify import Identifier
+
+    return Identifier.load(untrained_weights, device="cpu")
+
+
+def _sequence_csv(volumes, path, times=None):
+    write_table(join_by_time(volumes, times).drop(columns=["label"]), path)
+    return path
+
+
+def test_geometry_method_untracked_conf_is_the_probability_of_untracked(tmp_path, gentle):
+    """docs/tracking.md: track_conf is the probability of the track given, "of 'untracked'
+    when -1". The geometric chain is certain either way: 1 (untracked neurons used to get 0,
+    'certainly not untracked')."""
+    volumes, origins = gentle
+    src = _sequence_csv(volumes, tmp_path / "seq.csv")
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(src), "--method", "geometry", "--quiet", "--out", str(out)]) == 0
+    df = pd.read_csv(out)
+    untracked = df[df["track_id"] == -1]
+    assert len(untracked) > 0  # spurious detections are left untracked
+    assert (untracked["track_conf"] > 0.5).all(), untracked["track_conf"].unique()
+
+
+def test_chunk_does_not_change_the_answers_when_the_first_volume_lacks_colour(tmp_path, worm, gentle, untrained_weights):
+    """docs/tracking.md: `--chunk N` does not change the answers with the default placement,
+    also when the first file of a folder has no colour columns and the others have R, G, B
+    (whether colour was used used to be decided per chunk, from its first volume)."""
+    volumes, _ = gentle
+    folder = tmp_path / "vols"
+    write_table(NeuronTable(volumes[0].xyz), folder / "t0.csv")  # positions only
+    for k in range(1, len(volumes)):
+        write_table(volumes[k], folder / f"t{k}.csv")
+    ref = tmp_path / "ref.csv"
+    write_table(worm, ref)
+    outs = {}
+    for chunk in ("1", "16"):
+        out = tmp_path / f"chunk{chunk}.csv"
+        assert main(["track", str(folder), "--reference", str(ref), "--weights", str(untrained_weights),
+                     "--chunk", chunk, "--quiet", "--out", str(out)]) == 0
+        outs[chunk] = pd.read_csv(out, keep_default_na=False)
+    assert (outs["1"]["track_id"] == outs["16"]["track_id"]).all()
+    assert np.allclose(outs["1"]["track_conf"], outs["16"]["track_conf"], atol=1e-3), \
+        np.abs(outs["1"]["track_conf"] - outs["16"]["track_conf"]).max()
+
+
+def test_unknown_reference_t_is_refused_before_segmenting_a_recording(tmp_path, recording, capsys):
+    """docs/tracking.md: bad input is refused before any work: a --reference-t that the image
+    recording does not have is refused before it is segmented (it used to be after)."""
+    path, _, _ = recording
+    out = tmp_path / "tracks.csv"
+    code = main(["track", str(path), "--reference-t", "7", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and "time points 0 to 2" in err
+    assert "segmented" not in err, err
+
+
+def test_distinct_integer_time_points_stay_distinct_volumes(tmp_path, gentle):
+    """docs/tracking.md: t is any numbers, and the output's t is the input's. Integer time
+    stamps above 2**53 (nanosecond clocks) stay distinct volumes with their exact t (they used
+    to be parsed as float64 and collapse into one volume)."""
+    volumes, _ = gentle
+    times = [1_700_000_000_000_000_000 + k for k in range(3)]
+    src = _sequence_csv(volumes[:3], tmp_path / "seq.csv", times)
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(src), "--method", "geometry", "--quiet", "--out", str(out)]) == 0
+    df = pd.read_csv(out, dtype={"t": str})
+    assert list(df["t"].unique()) == [str(t) for t in times]
+    assert df.groupby("t", sort=False).size().tolist() == [len(v) for v in volumes[:3]]
+
+
+def test_an_empty_first_volume_is_not_an_unexpected_crash(gentle, worm, identifier):
+    """A volume with no neuron gets no rows, also when it is the first (or with
+    search="full"): the first volume with neurons is searched instead (the registration used to
+    fail with an IndexError)."""
+    volumes, _ = gentle
+    empty = volumes[0].subset(np.arange(0))
+    try:
+        result = track([empty, *volumes[1:]], references=[worm], identifier=identifier,
+                       settings=TrackSettings(use_colour=False))
+    except FdlcError:
+        return  # refused in one line: fine
+    assert len(result.track_id[0]) == 0
+    assert all((t >= 0).mean() > 0.8 for t in result.track_id[1:])
