@@ -108,3 +108,14 @@ def test_an_empty_first_volume_is_not_an_unexpected_crash(gentle, worm, identifi
         return  # refused in one line: fine
     assert len(result.track_id[0]) == 0
     assert all((t >= 0).mean() > 0.8 for t in result.track_id[1:])
+
+
+def test_model_options_ignored_by_a_baseline_say_so(tmp_path, gentle, capsys):
+    """--chirality (or --weights) with --method geometry: tracked, and one warning line says
+    the option is ignored (it used to be ignored silently)."""
+    volumes, _ = gentle
+    src = _sequence_csv(volumes, tmp_path / "seq.csv")
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(src), "--method", "geometry", "--chirality", "same", "--quiet", "--out", str(out)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["fdlc: warning: --chirality: for the fdlc method; ignored with --method geometry"]

@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import FdlcError, check_output
+from .errors import FdlcError, check_output, warn
 from .geometry import CHIRALITIES
 
 
@@ -66,6 +66,12 @@ def run(args: argparse.Namespace) -> int:
     out = check_output(args.out, [*args.inputs, *args.reference], create_folder=True)  # as fdlc segment
     if args.threads is not None and args.threads < 1:
         raise FdlcError(f"--threads must be at least 1 (got {args.threads})")
+    model_options = [name for name, given in (("--weights", args.weights), ("--tracking-weights", args.tracking_weights),
+                                              ("--chirality", args.chirality != "auto")) if given]
+    if args.method != "fdlc" and model_options:
+        warn(f"{', '.join(model_options)}: for the fdlc method; ignored with --method {args.method}")
+    elif args.tracking_weights and args.follow_with == "full":
+        warn("--tracking-weights: for --follow-with tracking; ignored with --follow-with full")
     # Validate every input before any model work (the references before a recording's segmentation).
     for raw in args.reference_t:
         _time_value(raw)
