@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         warn("--tracking-weights: for --follow-with tracking; ignored with --follow-with full")
     # Validate every input before any model work (the references before a recording's segmentation).
     for raw in args.reference_t:
-        _time_value(raw)
+        _reference_time(raw)
     if args.method != "fdlc" and len(args.reference) + len(args.reference_t) > 1:
         raise FdlcError(f"--method {args.method} takes one reference")
     references = [read_table(r) for r in args.reference]
@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
 
         def time_points_exist(series) -> None:
             for raw in args.reference_t:
-                value = _time_value(raw)
+                value = _reference_time(raw)
                 if not (value.is_integer() and 0 <= value < len(series)):
                     raise FdlcError(f"--reference-t {raw}: the recording has time points 0 to {len(series) - 1}")
 
@@ -138,7 +138,7 @@ def _image_recording(inputs: list[str]) -> str | None:
     return None
 
 
-def _time_value(raw: str) -> float:
+def _reference_time(raw: str) -> float:
     try:
         value = float(raw)
     except ValueError:
@@ -149,7 +149,7 @@ def _time_value(raw: str) -> float:
 
 
 def _volume_at(seq, raw: str):
-    value = _time_value(raw)
+    value = _reference_time(raw)
     for t, volume in zip(seq.times, seq.volumes):
         if float(t) == value:
             return volume
