@@ -119,3 +119,22 @@ def test_model_options_ignored_by_a_baseline_say_so(tmp_path, gentle, capsys):
     assert main(["track", str(src), "--method", "geometry", "--chirality", "same", "--quiet", "--out", str(out)]) == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["fdlc: warning: --chirality: for the fdlc method; ignored with --method geometry"]
+
+
+@pytest.mark.parametrize("method", ["fdlc", "geometry"])
+def test_an_unsure_reference_name_keeps_its_question_mark(tmp_path, gentle, worm, method, untrained_weights):
+    """A labelled reference with an unsure name (AVAL?): the tracks carry it as written, "?"
+    included (it used to lose the "?")."""
+    volumes, origins = gentle
+    names = np.array([worm.labels[o] if o >= 0 else "" for o in origins[0]], dtype=object)
+    named = int(np.flatnonzero(names != "")[0])
+    conf = np.where(names != "", 1.0, 0.0)
+    conf[named] = 0.5
+    ref = tmp_path / "ref.csv"
+    write_table(NeuronTable(volumes[0].xyz, volumes[0].colours, names, label_conf=conf), ref)
+    src = _sequence_csv(volumes, tmp_path / "seq.csv")
+    out = tmp_path / "tracks.csv"
+    weights = ["--weights", str(untrained_weights)] if method == "fdlc" else []
+    assert main(["track", str(src), "--reference", str(ref), "--method", method, *weights, "--quiet", "--out", str(out)]) == 0
+    df = pd.read_csv(out, keep_default_na=False)
+    assert f"{names[named]}?" in set(df["name"]) and names[named] not in set(df["name"])

@@ -459,7 +459,7 @@ def track(
     n_ids = int(max(i.max() for i in ids)) + 1
     names = [""] * n_ids
     for ref in reversed(refs):  # the first reference's names win
-        for i, n in zip(ref.ids, ref.table.labels):
+        for i, n in zip(ref.ids, ref.table.label_strings()):  # an unsure name keeps its "?"
             if n:
                 names[i] = n
     result = TrackResult([], [], names, [], list(seq.times), list(seq.sources))
@@ -508,7 +508,7 @@ def _track_cpd(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, progr
     from .baselines import cpd_follow, cpd_search
 
     ref = tables[0]
-    names = list(ref.labels)
+    names = ref.label_strings()
     result = TrackResult([], [], names, [], list(seq.times), list(seq.sources))
     moved = None
     for k, vol in enumerate(seq.volumes):
@@ -530,7 +530,7 @@ def _track_geometry(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, 
     from .baselines import floor_match
 
     ref = _Reference(tables[0], np.arange(len(tables[0])))
-    result = TrackResult([], [], list(ref.table.labels), [], list(seq.times), list(seq.sources))
+    result = TrackResult([], [], ref.table.label_strings(), [], list(seq.times), list(seq.sources))
     warp = None
     for k, vol in enumerate(seq.volumes):
         if warp is None:
