@@ -138,3 +138,20 @@ def test_an_unsure_reference_name_keeps_its_question_mark(tmp_path, gentle, worm
     assert main(["track", str(src), "--reference", str(ref), "--method", method, *weights, "--quiet", "--out", str(out)]) == 0
     df = pd.read_csv(out, keep_default_na=False)
     assert f"{names[named]}?" in set(df["name"]) and names[named] not in set(df["name"])
+
+
+def test_a_sequence_labelled_at_every_time_point_keeps_its_names(tmp_path, gentle, worm, capsys):
+    """One CSV with a t column, each time point labelled (a name once per time point): the
+    reference taken from it keeps its names (every name used to be dropped as a duplicate of
+    the whole file's)."""
+    volumes, origins = gentle
+    labelled = [NeuronTable(v.xyz, v.colours, np.array([worm.labels[o] if o >= 0 else "" for o in orig], dtype=object))
+                for v, orig in zip(volumes, origins)]
+    src = tmp_path / "seq.csv"
+    write_table(join_by_time(labelled), src)
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(src), "--method", "geometry", "--quiet", "--out", str(out)]) == 0
+    assert "more than once" not in capsys.readouterr().err
+    df = pd.read_csv(out, keep_default_na=False)
+    first = df[df["t"] == 0]
+    assert (first["name"].to_numpy() == labelled[0].labels).all() and (first["name"] != "").sum() > 50

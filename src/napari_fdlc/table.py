@@ -202,9 +202,11 @@ def _is_neuropal_id(lines: list[str]) -> bool:
     return any(line.startswith("User ID,") and "Real X (um)" in line for line in lines[:12])
 
 
-def read_table(path: str | os.PathLike, names: bool = True) -> NeuronTable:
+def read_table(path: str | os.PathLike, names: bool = True, unique_names: bool = True) -> NeuronTable:
     """Read and validate a neuron table (ours or a NeuroPAL_ID export). ``names=False`` leaves
-    its ``label`` column unread (a table to be named: its names are not used)."""
+    its ``label`` column unread (a table to be named: its names are not used).
+    ``unique_names=False`` keeps a name that occurs more than once (a table of several time
+    points names each neuron once per time point: :func:`with_unique_names` per volume)."""
     path = Path(path)
     name = str(path)
     if not path.exists():
@@ -223,9 +225,9 @@ def read_table(path: str | os.PathLike, names: bool = True) -> NeuronTable:
     if _is_neuropal_id(lines):
         header_line = next(i for i, line in enumerate(lines) if line.startswith("User ID,"))
         df = _read_csv(text, name, skiprows=header_line)
-        return _from_neuropal_id(df, name, first_line=header_line + 2, names=names)
+        return _from_neuropal_id(df, name, first_line=header_line + 2, names=names, unique_names=unique_names)
     df = _read_csv(text, name)
-    return table_from_dataframe(df, source=name, first_line=2, names=names)
+    return table_from_dataframe(df, source=name, first_line=2, names=names, unique_names=unique_names)
 
 
 def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
@@ -252,7 +254,8 @@ def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, a
     return values
 
 
-def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line: int = 2, names: bool = True) -> NeuronTable:
+def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line: int = 2, names: bool = True,
+                         unique_names: bool = True) -> NeuronTable:
     """Validate a data frame in our column layout and turn it into a :class:`NeuronTable`."""
     df = df.copy()
     df.columns = [str(c).strip() for c in df.columns]
@@ -280,9 +283,17 @@ def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line:
         parsed = [parse_name(v) for v in df["label"]]
         labels = np.array([p[0] for p in parsed], dtype=object)
         conf = np.array([p[1] for p in parsed])
-        labels, conf = _drop_duplicate_names(labels, conf, source)
+        if unique_names:
+            labels, conf = _drop_duplicate_names(labels, conf, source)
     kept = [c for c in df.columns if c not in COORDS + COLOUR_CHANNELS + ("label",)]
     return NeuronTable(xyz, colours, labels, conf, df[kept].reset_index(drop=True), source, text=df.reset_index(drop=True))
+
+
+def with_unique_names(table: NeuronTable) -> NeuronTable:
+    """``table`` with a name that occurs more than once left on none of its rows (with one
+    warning), as :func:`read_table` reads one volume."""
+    table.labels, table.label_conf = _drop_duplicate_names(table.labels, table.label_conf, table.source)
+    return table
 
 
 def _drop_duplicate_names(labels: np.ndarray, conf: np.ndarray, source: str):
@@ -299,7 +310,7 @@ def _drop_duplicate_names(labels: np.ndarray, conf: np.ndarray, source: str):
     return labels, conf
 
 
-def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int, names: bool = True) -> NeuronTable:
+def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int, names: bool = True, unique_names: bool = True) -> NeuronTable:
     ours = df.rename(columns={k: v for k, v in _NPID_TO_OURS.items() if k in df.columns})
     if "User ID" in ours.columns:
         ids = ours["User ID"].astype(str).str.strip()
@@ -311,7 +322,7 @@ def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int, names: bool 
         ours["label"] = ids
         ours = ours.drop(columns=["User ID"])
     ours = ours.loc[:, [c for c in ours.columns if c and not c.startswith("Unnamed:")]]
-    return table_from_dataframe(ours, source=name, first_line=first_line, names=names)
+    return table_from_dataframe(ours, source=name, first_line=first_line, names=names, unique_names=unique_names)
 
 
 def write_table(table: NeuronTable | pd.DataFrame, path: str | os.PathLike) -> None:

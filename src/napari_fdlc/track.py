@@ -51,7 +51,7 @@ from .errors import FdlcError, TableError
 from .geometry import Warp, canonical_frame, fit_warp, position_evidence, squared_distances
 from .match import assign, assign_log, min_cost_matching
 from .simulate import bend
-from .table import COORDS, NeuronTable, read_table, refuse_time_points
+from .table import COORDS, NeuronTable, read_table, refuse_time_points, with_unique_names
 
 UNTRACKED = -1
 
@@ -171,7 +171,7 @@ def read_sequence(paths: list[str] | str) -> Sequence:
             if not files:
                 raise FdlcError(f"{path}: the folder holds no .csv file")
             return Sequence([_one_volume(f) for f in files], list(range(len(files))), [f.name for f in files])
-        return split_by_time(read_table(path))
+        return split_by_time(read_table(path, unique_names=False))  # a name once per time point
     missing = [p for p in paths if Path(p).is_dir()]
     if missing:
         raise FdlcError(f"{missing[0]}: a folder can only be given alone")
@@ -207,6 +207,7 @@ def split_by_time(table: NeuronTable) -> Sequence:
         sub = table.subset(rows)
         sub.extra = sub.extra.drop(columns=["t"])
         sub.source = f"{name} (t={_time_value(v)})"
+        sub = with_unique_names(sub)
         volumes.append(sub)
         times.append(_time_value(v))
     return Sequence(volumes, times, [""] * len(volumes))
