@@ -223,3 +223,14 @@ def test_track_reference_with_several_time_points_is_refused(tmp_path, worm, cap
     assert run("track", seq, "--reference", seq, "--method", "geometry", "--quiet", "--out", out) == 2
     assert "time point" in one_line(capsys)
     assert not out.exists()
+
+
+def test_label_refuses_a_template_of_several_time_points_in_one_line(tmp_path, worm, capsys):
+    """A labelled recording (a t column, each time point named) given as a template: one line
+    that says why (a warning about its repeated names used to come first)."""
+    two = tmp_path / "two.csv"
+    write_table(join_by_time([worm, NeuronTable(worm.xyz + 1.0, worm.colours, worm.labels)]), two)
+    test = tmp_path / "test.csv"
+    write_table(worm, test)
+    assert run("label", test, "--template", two, "--out", tmp_path / "out.csv") == 2
+    assert "2 time points" in one_line(capsys)
