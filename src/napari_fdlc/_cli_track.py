@@ -57,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .table import read_table, refuse_time_points, warn_implausible_scales, write_table
+    from .table import read_volume, warn_implausible_scales, write_table
     from .track import TrackSettings, read_sequence, track
 
     settings = TrackSettings(search=args.search, placement=args.placement, refine_steps=args.refine_steps,
@@ -77,9 +77,8 @@ def run(args: argparse.Namespace) -> int:
         _reference_time(raw)
     if args.method != "fdlc" and len(args.reference) + len(args.reference_t) > 1:
         raise FdlcError(f"--method {args.method} takes one reference")
-    references = [read_table(r) for r in args.reference]
-    for r in references:
-        refuse_time_points(r, "a reference is one volume: give one time point (or name it with --reference-t)")
+    references = [read_volume(r, "a reference is one volume: give one time point (or name it with --reference-t)")
+                  for r in args.reference]
     recording = _image_recording(args.inputs)
     if recording is None:
         seq = read_sequence(args.inputs)

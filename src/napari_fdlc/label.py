@@ -18,7 +18,7 @@ from .errors import FdlcError, check_output, warn
 from .identify import (ADAPT_MIN_TESTS, FEW_NEURONS, Identifier, can_adapt_colours, colour_note, default_identifier,
                        harmonise, label_neurons, smaller_worm_note)
 from .match import Labelling, make_labelling, name_probabilities
-from .table import COORDS, NeuronTable, read_table, refuse_time_points, warn_implausible_scales, with_unique_names, write_table
+from .table import COORDS, NeuronTable, read_volume, warn_implausible_scales, write_table
 
 
 # Columns of an earlier ``fdlc label`` output: labelling that output again must not carry its
@@ -94,12 +94,9 @@ def label_files(
     if method == "cpd" and not templates:
         raise FdlcError("--method cpd needs --template (the reference panel is for the fdlc model)")
     # Validate everything before any work or any write.
-    test_tables = [read_table(t, names=False) for t in tests]  # a test's names are not used
-    # a template's repeated names are dropped (with a warning) once it is known to be one volume
-    template_tables = [read_table(t, unique_names=False) for t in (templates or [])]
-    for t in [*test_tables, *template_tables]:
-        refuse_time_points(t, "fdlc label names one volume: give one time point, or follow them all with fdlc track --reference")
-    template_tables = [with_unique_names(t) for t in template_tables]
+    one_volume = "fdlc label names one volume: give one time point, or follow them all with fdlc track --reference"
+    test_tables = [read_volume(t, one_volume, names=False) for t in tests]  # a test's names are not used
+    template_tables = [read_volume(t, one_volume) for t in (templates or [])]
     for t in template_tables:
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron (a 'label' column with names is needed)")

@@ -378,11 +378,15 @@ def write_neuropal_id(
         df.to_csv(handle, index=False)
 
 
-def refuse_time_points(table: NeuronTable, instead: str) -> None:
-    """Refuse a table of several time points (a ``t`` column, as ``fdlc segment`` writes for a
-    recording) where one volume is needed: it is many volumes of one worm, and taken whole it
-    would mix them. ``instead`` says what to give."""
+def read_volume(path: str | os.PathLike, instead: str, names: bool = True) -> NeuronTable:
+    """:func:`read_table` for a table that must be one volume: a table of several time points
+    (a ``t`` column, as ``fdlc segment`` writes for a recording) is refused in one line, before
+    its names are checked for repeats (each time point names a neuron again). ``instead`` says
+    what to give."""
+    table = read_table(path, names=names, unique_names=False)
     if table.text is not None and "t" in table.text.columns:
         times = table.text["t"].astype(str).str.strip().nunique()
         if times > 1:
-            raise TableError(f"{table.source}: a recording of {times} time points (a 't' column); {instead}")
+            raise TableError(f"{table.source}: a recording of {times} time points (a 't' column), taken whole it "
+                             f"would mix them; {instead}")
+    return with_unique_names(table) if names else table

@@ -51,7 +51,7 @@ from .errors import FdlcError, TableError
 from .geometry import Warp, canonical_frame, fit_warp, position_evidence, squared_distances
 from .match import assign, assign_log, min_cost_matching
 from .simulate import bend
-from .table import COORDS, NeuronTable, read_table, refuse_time_points, with_unique_names
+from .table import COORDS, NeuronTable, read_table, read_volume, with_unique_names
 
 UNTRACKED = -1
 
@@ -156,6 +156,9 @@ def _natural_key(name: str):
     return [int(s) if s.isdigit() else s.lower() for s in re.split(r"(\d+)", name)]
 
 
+_ONE_PER_FILE = "each file of a folder or list of CSVs is one volume: give a table of several time points alone"
+
+
 def read_sequence(paths: list[str] | str) -> Sequence:
     """A sequence from one CSV with a ``t`` column, a folder of CSVs (one volume each, in natural
     name order: ``t2`` before ``t10``), or several CSVs (in the order given)."""
@@ -170,19 +173,12 @@ def read_sequence(paths: list[str] | str) -> Sequence:
                            key=lambda p: _natural_key(p.name))
             if not files:
                 raise FdlcError(f"{path}: the folder holds no .csv file")
-            return Sequence([_one_volume(f) for f in files], list(range(len(files))), [f.name for f in files])
+            return Sequence([read_volume(f, _ONE_PER_FILE) for f in files], list(range(len(files))), [f.name for f in files])
         return split_by_time(read_table(path, unique_names=False))  # a name once per time point
     missing = [p for p in paths if Path(p).is_dir()]
     if missing:
         raise FdlcError(f"{missing[0]}: a folder can only be given alone")
-    return Sequence([_one_volume(p) for p in paths], list(range(len(paths))), [Path(p).name for p in paths])
-
-
-def _one_volume(path) -> NeuronTable:
-    table = read_table(path)
-    refuse_time_points(table, "each file of a folder or list of CSVs is one volume: give a table of several "
-                              "time points alone")
-    return table
+    return Sequence([read_volume(p, _ONE_PER_FILE) for p in paths], list(range(len(paths))), [Path(p).name for p in paths])
 
 
 def split_by_time(table: NeuronTable) -> Sequence:

@@ -305,12 +305,10 @@ class TrackWidget(QWidget):
 
         @thread_worker(start_thread=False, ignore_errors=True)
         def work():
-            from ..table import read_table, refuse_time_points
+            from ..table import read_volume
             from ..track import Sequence, TrackSettings, read_sequence, track
 
-            references = [read_table(reference_path)] if reference_path else None
-            for r in references or ():
-                refuse_time_points(r, "a reference is one volume: give one time point")
+            references = [read_volume(reference_path, "a reference is one volume: give one time point")] if reference_path else None
             if channels is not None:
                 from ..segment import segment_series
 
