@@ -52,7 +52,8 @@ def test_tracks_and_labelled_points_at_the_current_time(track_widget, sequence_c
     assert tracks in viewer.layers and points in viewer.layers
     # Tracks: [track_id, t, z, y, x]; one row per tracked neuron per time point
     assert tracks.data.shape[1] == 5
-    assert set(np.unique(tracks.data[:, 1]).astype(int)) == set(range(len(volumes)))
+    # whole-number t are frame numbers: each volume is shown at its own t
+    assert set(np.unique(tracks.data[:, 1]).astype(int)) == {10 * t for t in range(len(volumes))}
     # every neuron of every time point is a point; positions are the input's, z y x
     assert len(points.data) == sum(len(v) for v in volumes)
     assert np.allclose(points.data[: len(volumes[0]), 1:], volumes[0].xyz[:, ::-1])
@@ -70,9 +71,9 @@ def test_tracks_and_labelled_points_at_the_current_time(track_widget, sequence_c
     viewer.dims.set_current_step(0, 0)
     shown = np.asarray(points._view_indices, dtype=int)
     assert len(shown) == len(volumes[0])
-    viewer.dims.set_current_step(0, 3)
+    viewer.dims.set_current_step(0, 30)
     shown = np.asarray(points._view_indices, dtype=int)
-    assert len(shown) == len(volumes[3]) and (points.data[shown, 0] == 3).all()
+    assert len(shown) == len(volumes[3]) and (points.data[shown, 0] == 30).all()
     assert widget.progress_bar.value() == 100
     assert "5 time points" in widget.status.text()
 
@@ -191,3 +192,22 @@ def test_a_reference_of_several_time_points_is_refused(track_widget, sequence_cs
     assert widget.run() is None
     assert "time points" in widget.last_error and "\n" not in widget.last_error
     assert not any(type(layer).__name__ in ("Tracks", "Points") for layer in viewer.layers)
+
+
+def test_table_volumes_lie_on_their_frames_and_other_times_in_order():
+    """A CSV from fdlc segment leaves out time points without nuclei: its volumes are shown at
+    their t, so they stay on the recording's frames; t in seconds is shown in order."""
+    from napari_fdlc._napari.tracks import frames_of, track_layers
+    from napari_fdlc.reference import generate_worm
+    from napari_fdlc.track import Sequence, TrackResult
+
+    assert frames_of([0, 1, 3, 4]) == [0, 1, 3, 4]
+    assert frames_of([0.0, 0.5, 1.0]) is None
+    assert frames_of([1_700_000_000_000_000_000, 1_700_000_000_100_000_000]) is None  # ns timestamps
+    assert frames_of([-2, -1]) is None
+    worm = generate_worm(seed=1)
+    sequence = Sequence([worm, worm], [0, 3], ["", ""])
+    ids = np.arange(len(worm))
+    result = TrackResult([ids, ids], [np.ones(len(worm))] * 2, [""] * len(worm), [{}, {}])
+    tracks, points = track_layers(result, sequence, "s", frames_of(sequence.times))
+    assert set(tracks[0][:, 1]) == {0, 3} and set(points[0][:, 0]) == {0, 3}

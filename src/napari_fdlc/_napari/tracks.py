@@ -71,8 +71,9 @@ class _Signals(QObject):
 
 def track_layers(result, sequence, name: str = "sequence", frames: list[int] | None = None) -> list[tuple]:
     """napari layer data tuples ``(data, kwargs, type)`` for a :class:`TrackResult`: Tracks of
-    the tracked neurons and Points of all neurons, time first, then z, y, x in µm. Time is each
-    volume's index in ``sequence`` or, for a recording's volumes, ``frames`` (its time points)."""
+    the tracked neurons and Points of all neurons, time first, then z, y, x in µm. Time is
+    ``frames`` (a recording's time points, a table sequence's frame numbers: :func:`frames_of`)
+    or else each volume's index in ``sequence``."""
     frames = list(range(len(sequence))) if frames is None else frames
     rows, points, feats = [], [], {"t": [], "track_id": [], "track_conf": [], "name": []}
     for k, (vol, tid, conf) in enumerate(zip(sequence.volumes, result.track_id, result.confidence)):
@@ -102,6 +103,19 @@ def track_layers(result, sequence, name: str = "sequence", frames: list[int] | N
         "axis_labels": ("t", "z", "y", "x"), "metadata": meta,
     }, "points")
     return [tracks, pts]
+
+
+MAX_FRAME = 100_000  # whole-number t beyond this are timestamps, not frame numbers
+
+
+def frames_of(times: list) -> list[int] | None:
+    """The time points at which a table sequence's volumes are shown: their ``t`` when every t
+    is a frame number (a whole number from 0 to ``MAX_FRAME``, as ``fdlc segment`` writes, so
+    that a recording whose empty time points were left out still lies on its image's frames);
+    otherwise None, each volume at its position in the sequence (t in seconds, timestamps)."""
+    if all(isinstance(t, (int, np.integer)) and 0 <= t <= MAX_FRAME for t in times):
+        return [int(t) for t in times]
+    return None
 
 
 def _id_colours(ids: np.ndarray) -> np.ndarray:
@@ -322,7 +336,8 @@ class TrackWidget(QWidget):
             else:
                 if not sequence_path:
                     raise FdlcError("choose a recording or a sequence first (a CSV with a t column, or a folder of CSVs)")
-                sequence, frames = read_sequence([sequence_path]), None
+                sequence = read_sequence([sequence_path])
+                frames = frames_of(sequence.times)
             if warming is not None:  # one model, used by one thread at a time
                 warming.join()
             ident = identifier
