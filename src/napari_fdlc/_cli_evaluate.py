@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FdlcError, atomic_write
+from .errors import FdlcError, atomic_write, check_output
 
 
 BATCH_ROW = "colour, the lab's worms in one call"
@@ -37,6 +37,7 @@ def run(args) -> int:
     for flag in ("pairs_per_lab", "panel_worms_per_lab", "synthetic_pairs"):
         if getattr(args, flag) < 0:
             raise FdlcError(f"--{flag.replace('_', '-')} must be 0 or more (got {getattr(args, flag)})")
+    check_output(args.out, create_folder=True)
     report = evaluate_corpus(
         corpus=args.corpus, labs=args.labs, weights=args.weights, pairs_per_lab=args.pairs_per_lab,
         panel_worms_per_lab=args.panel_worms_per_lab, synthetic_pairs=args.synthetic_pairs,

@@ -77,7 +77,6 @@ def _simulate_parser(sub) -> None:
 def _run_simulate(args) -> int:
     import numpy as np
 
-    from .errors import atomic_write  # noqa: F401  (write_table is atomic)
     from .simulate import simulate_worm
     from .table import read_table, write_table
 
@@ -127,6 +126,7 @@ def _train_parser(sub) -> None:
 
 
 def _run_train(args) -> int:
+    from .model import model_files
     from .train import TrainConfig, train
 
     cfg = TrainConfig.from_json(args.config) if args.config else TrainConfig()
@@ -142,13 +142,13 @@ def _run_train(args) -> int:
     cfg.calibrate = not args.no_calibrate
     if args.colour_input:
         cfg.model = {**cfg.model, "colour_channels": 3}
-    if args.eval_every:
+    if args.eval_every is not None:
         cfg.eval_every = args.eval_every
-    if args.val_pairs_per_lab:
+    if args.val_pairs_per_lab is not None:
         cfg.val_pairs_per_lab = args.val_pairs_per_lab
-    if args.train_labs:
+    if args.train_labs is not None:
         cfg.train_labs = tuple(args.train_labs)
-    if args.val_labs:
+    if args.val_labs is not None:
         cfg.val_labs = tuple(args.val_labs)
     if args.steps is not None:
         cfg.steps = args.steps
@@ -163,7 +163,8 @@ def _run_train(args) -> int:
         calibrate_checkpoint(cfg)
         return 0
     result = train(cfg)
-    print(f"best mean validation top-1 {result['best_mean_top1']:.3f} after {result['minutes']:.1f} min; weights at {cfg.out}.safetensors")
+    weights, _ = model_files(cfg.out)
+    print(f"best mean validation top-1 {result['best_mean_top1']:.3f} after {result['minutes']:.1f} min; weights at {weights}")
     return 0
 
 
@@ -207,8 +208,11 @@ def _run_atlas(args) -> int:
     from .corpus import load_corpus
     from .reference import build_atlas
 
+    from .errors import check_output
+
     if not 0 < args.min_frequency <= 1:
         raise FdlcError(f"--min-frequency must be a fraction of worms in (0, 1] (got {args.min_frequency})")
+    check_output(args.out, create_folder=True)
     atlas = build_atlas(load_corpus(args.corpus, args.labs), min_frequency=args.min_frequency)
     atlas.save(args.out)
     print(f"{len(atlas.names)} names from {atlas.worms} worms of {', '.join(atlas.labs)} -> {args.out}")

@@ -46,7 +46,16 @@ def load_corpus(path: str | os.PathLike | None = None, labs: tuple[str, ...] | l
         raise FdlcError(
             "NeuroPAL corpus not found: pass --corpus PATH (the folder with worms.csv) or set FDLC_CORPUS"
         )
-    index = pd.read_csv(path / "worms.csv", dtype=str)
+    index_path = path / "worms.csv"
+    try:
+        index = pd.read_csv(index_path, dtype=str, keep_default_na=False)
+    except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise FdlcError(f"{index_path}: not a readable CSV ({str(exc).splitlines()[0]})") from None
+    missing = [c for c in ("dataset", "worm") if c not in index.columns]
+    if missing:
+        raise FdlcError(f"{index_path}: no column {' or '.join(repr(c) for c in missing)} (it lists the worms: dataset, worm)")
+    if index.empty:
+        raise FdlcError(f"{index_path}: lists no worm")
     unknown = sorted(set(labs or ()) - set(index["dataset"]))
     if unknown:
         raise FdlcError(f"no worms of lab(s) {', '.join(unknown)} in the corpus (labs: {', '.join(sorted(set(index['dataset'])))})")

@@ -202,16 +202,18 @@ class Identifier:
     @classmethod
     def load(cls, path: str | Path | None = None, device: str | None = None) -> "Identifier":
         """Load weights (``path`` without suffix; default: the weights shipped in the package)."""
-        from .model import load_model
+        from .model import load_model, model_files
 
-        path = Path(path) if path else shipped_weights()
-        if not path.with_suffix(".safetensors").exists():
-            raise ModelError(
-                f"no trained weights at {path.with_suffix('.safetensors')}: train them with 'fdlc train'"
-            )
-        model = load_model(path)
-        meta = json.loads(path.with_suffix(".json").read_text())
-        return cls(model, InferenceSettings.from_dict(meta.get("inference")), device)
+        weights, config_path = model_files(path or shipped_weights())
+        if not weights.exists():
+            raise ModelError(f"no trained weights at {weights}: train them with 'fdlc train'")
+        model = load_model(weights)
+        inference = json.loads(config_path.read_text()).get("inference")
+        try:
+            settings = InferenceSettings.from_dict(inference)
+        except (TypeError, ValueError) as exc:
+            raise ModelError(f"{config_path}: 'inference' is not a set of inference settings ({exc})") from None
+        return cls(model, settings, device)
 
     def with_settings(self, **changes) -> "Identifier":
         """The same model with some inference settings changed (the original is left alone)."""

@@ -38,6 +38,41 @@ DEFAULT_CONFIG = {
 }
 
 
+def model_config(config) -> dict:
+    """``config`` over :data:`DEFAULT_CONFIG`, refused (ModelError) unless it names known sizes
+    with sensible values: a whole dimension that the heads divide, whole positive counts,
+    positive lengths."""
+    if config is not None and not isinstance(config, dict):
+        raise ModelError(f"a model configuration is a JSON object of sizes, not {type(config).__name__}")
+    full = {**DEFAULT_CONFIG, **(config or {})}
+    unknown = sorted(set(full) - set(DEFAULT_CONFIG))
+    if unknown:
+        raise ModelError(f"unknown model setting(s) {', '.join(unknown)} (known: {', '.join(DEFAULT_CONFIG)})")
+    for key in ("dim", "heads", "layers", "fourier_bands", "colour_channels"):
+        value = full[key]
+        least = 0 if key in ("fourier_bands", "colour_channels") else 1
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ModelError(f"model setting {key} must be a whole number of at least {least} (got {value!r})")
+    for key in ("scale_um", "prior_sigma_um"):
+        value = full[key]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
+            raise ModelError(f"model setting {key} must be a positive number (got {value!r})")
+    if full["dim"] % full["heads"]:
+        raise ModelError(f"model setting dim ({full['dim']}) must be a multiple of heads ({full['heads']})")
+    return full
+
+
+def model_files(path: str | Path) -> tuple[Path, Path]:
+    """The weights and configuration files of the model at ``path`` (``path.safetensors``,
+    ``path.json``; given with either suffix, the same pair). The suffix is added, not put in
+    place of one: ``runs/model.v2`` is ``runs/model.v2.safetensors``."""
+    text = str(path)
+    for suffix in (".safetensors", ".json"):
+        if text.endswith(suffix):
+            text = text[: -len(suffix)]
+    return Path(text + ".safetensors"), Path(text + ".json")
+
+
 class FourierEmbedding(nn.Module):
     """xyz -> MLP([xyz, sin/cos(2^k xyz)]): lets a small network resolve µm-scale structure."""
 
@@ -109,7 +144,7 @@ class CorrespondenceModel(nn.Module):
 
     def __init__(self, config: dict | None = None):
         super().__init__()
-        self.config = {**DEFAULT_CONFIG, **(config or {})}
+        self.config = model_config(config)
         dim, heads = self.config["dim"], self.config["heads"]
         self.embed = FourierEmbedding(dim, self.config["fourier_bands"])
         self.role = nn.Parameter(torch.zeros(2, dim))  # marks template (0) and test (1)
@@ -237,15 +272,20 @@ def matching_loss(log_probs, target, negative=None, entropy_weight=0.0):
 def save_model(model: CorrespondenceModel, path: str | Path, card: dict | None = None) -> None:
     from safetensors.torch import save_file
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    save_file({k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}, str(tmp))
-    tmp.replace(path.with_suffix(".safetensors"))
-    meta = {"config": model.config, **(card or {})}
-    json_tmp = path.with_suffix(".json.tmp")
-    json_tmp.write_text(json.dumps(meta, indent=2))
-    json_tmp.replace(path.with_suffix(".json"))
+    weights, config_path = model_files(path)
+    weights.parent.mkdir(parents=True, exist_ok=True)
+    # Both files are written in full before either replaces the old one: an interruption while
+    # writing leaves the old pair whole.
+    tmp = Path(f"{weights}.tmp")
+    json_tmp = Path(f"{config_path}.tmp")
+    try:
+        save_file({k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}, str(tmp))
+        json_tmp.write_text(json.dumps({"config": model.config, **(card or {})}, indent=2))
+        tmp.replace(weights)
+        json_tmp.replace(config_path)
+    finally:
+        for left in (tmp, json_tmp):
+            left.unlink(missing_ok=True)
 
 
 def load_model(path: str | Path) -> CorrespondenceModel:
@@ -253,8 +293,7 @@ def load_model(path: str | Path) -> CorrespondenceModel:
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    path = Path(path)
-    weights, config_path = path.with_suffix(".safetensors"), path.with_suffix(".json")
+    weights, config_path = model_files(path)
     for p in (weights, config_path):
         if not p.exists():
             raise ModelError(f"{p}: model file missing")
@@ -262,7 +301,7 @@ def load_model(path: str | Path) -> CorrespondenceModel:
         meta = json.loads(config_path.read_text())
         config = meta["config"]
         model = CorrespondenceModel(config)
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, ModelError) as exc:
         raise ModelError(f"{config_path}: not a valid model configuration ({exc})") from None
     try:
         state = load_file(str(weights))

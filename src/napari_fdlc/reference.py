@@ -39,7 +39,7 @@ import numpy as np
 import pandas as pd
 
 from .colour import IDENTITY_CHANNELS, normal_scores
-from .errors import ModelError, atomic_write
+from .errors import FdlcError, ModelError, atomic_write
 from .geometry import canonical_frame
 from .register import Mixture, Placement, posterior, register
 from .table import NeuronTable
@@ -178,9 +178,14 @@ def _similarity(src: np.ndarray, dst: np.ndarray, allow_mirror: bool):
     return rot, scale, mu_s, mu_d, res
 
 
+MIN_ATLAS_NAMES = 10  # fewer names cannot place a worm (the registration needs a body to fit)
+
+
 def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
     """Statistical atlas from labelled worms (a list of :class:`napari_fdlc.corpus.Worm`)."""
     tables = [w.table for w in worms]
+    if not tables:
+        raise FdlcError("no worms to build an atlas from")
     canon = [canonical_frame(t.xyz)[0] for t in tables]
     colours = [
         normal_scores(t, IDENTITY_CHANNELS) if all(c in t.colours for c in IDENTITY_CHANNELS) else None
@@ -221,6 +226,10 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
                 if col is not None:
                     entry["col"].append(col[i])
     names = sorted(n for n, e in stats.items() if len(e["pos"]) >= max(2, min_frequency * used))
+    if used < 2 or len(names) < MIN_ATLAS_NAMES:
+        raise FdlcError(f"no atlas from these {len(tables)} worm(s): {used} share 4 or more names with the best-named one, "
+                        f"and {len(names)} name(s) recur in enough of them; an atlas needs 2 such worms and "
+                        f"{MIN_ATLAS_NAMES} names (give worms with a label column)")
     pos = [np.array(stats[n]["pos"]) for n in names]
     col = [np.array(stats[n]["col"]).reshape(-1, 3) for n in names]
     mean_pos = np.array([p.mean(0) for p in pos])

@@ -24,7 +24,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +101,7 @@ class TrainConfig:
         return asdict(self)
 
     def check(self) -> None:
+        self._check_types()
         if self.task not in TASKS:
             raise FdlcError(f"unknown training task '{self.task}' (use {' or '.join(TASKS)})")
         for name in ("steps", "batch_size", "eval_every", "val_pairs_per_lab", "stop_at", "threads"):
@@ -109,13 +110,43 @@ class TrainConfig:
                 raise FdlcError(f"--{name.replace('_', '-')} must be at least 1 (got {value})")
         if self.workers < 0:
             raise FdlcError(f"--workers must be 0 or more (got {self.workers})")
+        if not 0 <= self.seed < 2**32:
+            raise FdlcError(f"--seed must be a whole number from 0 to 2**32 - 1 (got {self.seed})")
         if self.time_limit_min is not None and not self.time_limit_min > 0:
             raise FdlcError(f"--minutes must be a positive number (got {self.time_limit_min})")
-        if self.device and self.device.startswith("cuda"):
+        if self.device:
             import torch
 
-            if not torch.cuda.is_available():
+            try:
+                torch.device(self.device)
+            except RuntimeError:
+                raise FdlcError(f"--device {self.device}: not a torch device (use cpu or cuda)") from None
+            if self.device.startswith("cuda") and not torch.cuda.is_available():
                 raise FdlcError(f"--device {self.device}: no CUDA device here (torch sees none); use --device cpu")
+        from .model import model_config
+
+        model_config(self.model)
+
+    def _check_types(self) -> None:
+        """Each setting of the kind it must be (a configuration file can hold anything)."""
+        def fail(name, kind):
+            raise FdlcError(f"training setting {name} must be {kind} (got {getattr(self, name)!r})")
+
+        for f in fields(self):
+            value = getattr(self, f.name)
+            kind = f.type.replace(" | None", "")
+            if value is None and "None" in f.type:
+                continue
+            if kind == "int" and (isinstance(value, bool) or not isinstance(value, int)):
+                fail(f.name, "a whole number")
+            if kind == "float" and (isinstance(value, bool) or not isinstance(value, (int, float))):
+                fail(f.name, "a number")
+            if kind in ("str", "bool", "dict") and not isinstance(value, {"str": str, "bool": bool, "dict": dict}[kind]):
+                fail(f.name, {"str": "a string", "bool": "true or false", "dict": "a JSON object"}[kind])
+            if kind == "tuple[str, ...]" and not all(isinstance(v, str) for v in value):
+                fail(f.name, "a list of lab names")
+            if kind == "tuple[float, float]" and (len(value) != 2 or not all(isinstance(v, (int, float)) for v in value)):
+                fail(f.name, "two numbers")
 
     @classmethod
     def from_json(cls, path: str | Path) -> "TrainConfig":
@@ -124,12 +155,17 @@ class TrainConfig:
             data = json.loads(Path(path).read_text())
         except (OSError, ValueError) as exc:
             raise FdlcError(f"{path}: not a readable JSON training configuration ({exc})") from None
-        data = data.get("train_config", data)
+        if isinstance(data, dict):
+            data = data.get("train_config", data)
+        if not isinstance(data, dict):
+            raise FdlcError(f"{path}: a training configuration is a JSON object of settings")
         unknown = set(data) - set(cls.__dataclass_fields__)
         if unknown:
             raise FdlcError(f"{path}: unknown training setting(s) {', '.join(sorted(unknown))}")
         for key in ("train_labs", "val_labs", "motion"):
             if key in data:
+                if not isinstance(data[key], list):
+                    raise FdlcError(f"{path}: {key} must be a list (got {data[key]!r})")
                 data[key] = tuple(data[key])
         return cls(**data)
 
@@ -237,13 +273,16 @@ def _colour_features(table: NeuronTable) -> np.ndarray | None:
     return normal_scores(table, IDENTITY_CHANNELS).astype(np.float32)
 
 
+MAX_DRAWS = 1000  # draws without a usable example before the worms are declared unusable
+
+
 def sample_example(worms: list[Worm], rng, cfg: TrainConfig, atlas=None):
     """One training example: a synthetic pair, a real cross-worm pair, or (with ``atlas``, the
     atlas of the training worms) a real worm against a worm sampled from the atlas; with
     ``cfg.task == "track"``, a tracking example (:func:`tracking_example`)."""
     if cfg.task == "track":
         return tracking_example(worms, rng, cfg)
-    while True:
+    for _ in range(MAX_DRAWS):
         u = rng.random()
         placement = {}
         if u < cfg.synthetic_fraction:
@@ -266,6 +305,8 @@ def sample_example(worms: list[Worm], rng, cfg: TrainConfig, atlas=None):
         example = make_example(template, test, target, rng, cfg, **placement)
         if example is not None:
             return example
+    raise FdlcError(f"no training example in {MAX_DRAWS} draws: the training worms share too few named neurons "
+                    "(a pair needs 4 names in common)")
 
 
 def tracking_example(worms: list[Worm], rng, cfg: TrainConfig):
@@ -347,6 +388,8 @@ def training_batches(worms: list[Worm], cfg: TrainConfig, atlas, rng, first_step
     import torch
 
     if cfg.workers <= 0:
+        if first_step > 1:  # a resumed run goes on with new examples, not those of its first steps
+            rng = np.random.default_rng([cfg.seed, first_step])
         while True:
             yield _batch(worms, cfg, atlas, rng, torch)
     # The workers inherit the worms and this function's closures by fork (nothing is pickled).
@@ -457,24 +500,52 @@ def validation_pairs(val: dict[str, list[Worm]], per_lab: int, rng) -> dict[str,
     return out
 
 
-def _load_start(model, path: str, resume: bool, log) -> int:
-    """Copy the weights at ``path`` that fit ``model``; returns the step to continue from."""
+def _load_start(model, path: str, resume: bool, log) -> tuple[int, list, float]:
+    """Copy the weights at ``path`` into ``model``: those that fit (``init_from``), or every one
+    (``resume``: the checkpoint must be this very model). Returns the step to continue from, the
+    validation history so far and the best mean top-1 in it (1, [], -1 when not resuming)."""
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
 
     from .errors import ModelError
+    from .model import model_files
 
-    weights = Path(path).with_suffix(".safetensors")
+    weights, config_path = model_files(path)
     if not weights.exists():
         raise ModelError(f"{weights}: no checkpoint to start from")
-    state = load_file(str(weights))
+    try:
+        state = load_file(str(weights))
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise ModelError(f"{weights}: not a valid safetensors file ({str(exc).splitlines()[0]})") from None
     own = model.state_dict()
     fitting = {k: v for k, v in state.items() if k in own and own[k].shape == v.shape}
+    if resume and (len(fitting) != len(own) or len(state) != len(own)):
+        raise ModelError(f"{weights}: --resume needs the checkpoint's own model, and this one has other sizes than "
+                         "the configuration (give its --config, or --init-from to start a new run from it)")
     model.load_state_dict(fitting, strict=False)
     log(f"started from {weights}: {len(fitting)}/{len(own)} tensors")
     if not resume:
-        return 1
-    meta = json.loads(Path(path).with_suffix(".json").read_text())
-    return int(meta.get("best_step", 0)) + 1
+        return 1, [], -1.0
+    try:
+        meta = json.loads(config_path.read_text())
+        history = list(meta.get("history", []))
+        best_step = int(meta.get("best_step", 0))
+    except (OSError, ValueError, TypeError, AttributeError) as exc:
+        raise ModelError(f"{config_path}: not a readable checkpoint record ({exc})") from None
+    best = max((float(h.get("mean_top1", -1.0)) for h in history if h.get("step") == best_step), default=-1.0)
+    # The run goes on from the checkpoint (its best step): later entries belong to steps undone.
+    return best_step + 1, [h for h in history if h.get("step", 0) <= best_step], best
+
+
+def _check_labs(cfg: TrainConfig, corpus_labs: set[str]) -> None:
+    """Labs named for training or validation must be in the corpus (the default list, all five
+    labs, stands for those of them the corpus has); some training lab must be."""
+    for name, labs in (("--train-labs", cfg.train_labs), ("--val-labs", cfg.val_labs)):
+        missing = [lab for lab in labs if lab not in corpus_labs]
+        if missing and tuple(labs) != LABS:
+            raise FdlcError(f"{name}: no worms of lab(s) {', '.join(missing)} in the corpus (labs: {', '.join(sorted(corpus_labs))})")
+    if not set(cfg.train_labs) & corpus_labs:
+        raise FdlcError(f"no worms of the training labs {', '.join(cfg.train_labs)} in the corpus (labs: {', '.join(sorted(corpus_labs))})")
 
 
 def train(cfg: TrainConfig, log=print) -> dict:
@@ -482,7 +553,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
     import torch
 
     from .identify import Identifier, InferenceSettings
-    from .model import CorrespondenceModel, matching_loss, save_model
+    from .model import CorrespondenceModel, matching_loss, model_files, save_model
 
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
@@ -490,6 +561,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         torch.set_num_threads(cfg.threads)
     device = cfg.device or ("cuda" if torch.cuda.is_available() else "cpu")
     worms = load_corpus(cfg.corpus)
+    _check_labs(cfg, {w.lab for w in worms})
     train_worms, val_worms = split_worms(worms, cfg, rng)
     val_pairs = validation_pairs(val_worms, cfg.val_pairs_per_lab, np.random.default_rng(cfg.seed + 1))
     recordings = tracking_sequences(val_worms, cfg) if cfg.task == "track" else None
@@ -500,22 +572,23 @@ def train(cfg: TrainConfig, log=print) -> dict:
         + ", ".join(f"{lab} ({len(p)} pairs)" for lab, p in val_pairs.items()))
 
     model = CorrespondenceModel(cfg.model).to(device)
-    first_step = 1
+    first_step, history, best = 1, [], -1.0
     start_from = cfg.out if cfg.resume else cfg.init_from
     if start_from:
-        first_step = _load_start(model, start_from, cfg.resume, log)
+        first_step, history, best = _load_start(model, start_from, cfg.resume, log)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     warmup = max(1, min(100, cfg.steps // 10))
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: min(1.0, (s + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * min(s, cfg.steps) / cfg.steps))
-    )
-    out = Path(cfg.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    done = first_step - 1  # a resumed run's schedule continues where it stopped
+
+    def lr_factor(s):
+        s += done
+        return min(1.0, (s + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * min(s, cfg.steps) / cfg.steps))
+
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_factor)
+    _, config_path = model_files(cfg.out)
     start = time.time()
-    best, history, running = -1.0, [], []
+    running = []
     settings = InferenceSettings()
-    for _ in range(1, first_step):
-        sched.step()  # the learning-rate schedule continues where it stopped
     from tqdm import tqdm
 
     batches = training_batches(train_worms, cfg, atlas, rng, first_step)
@@ -553,19 +626,21 @@ def train(cfg: TrainConfig, log=print) -> dict:
             log(json.dumps(entry))
             if mean > best:
                 best = mean
-                save_model(model, out, {"train_config": cfg.to_json(), "history": history,
+                save_model(model, cfg.out, {"train_config": cfg.to_json(), "history": history,
                                         "inference": asdict(settings), "best_step": step})
         if out_of_time:
-            log(f"stopped at step {step} (--stop-at or the time limit of {cfg.time_limit_min} min)")
+            log(f"stopped at step {step} (--stop-at)" if step == cfg.stop_at
+                else f"stopped at step {step} (the time limit of {cfg.time_limit_min} min)")
             break
     minutes = (time.time() - start) / 60
     where = {"train_minutes": round(minutes, 1), "device": device, "torch_threads": torch.get_num_threads()}
-    if cfg.calibrate and best >= 0 and cfg.task == "identify":
-        calibrate_checkpoint(cfg, val_pairs, where, log)
-    elif best >= 0:  # the tracking model keeps the default inference settings
-        meta = {**json.loads(out.with_suffix(".json").read_text()), **where}
-        with atomic_write(out.with_suffix(".json"), "w", encoding="utf-8") as handle:
+    if best >= 0:
+        # The record: where it trained, and every validation (also those after the best step).
+        meta = {**json.loads(config_path.read_text()), **where, "history": history}
+        with atomic_write(config_path, "w", encoding="utf-8") as handle:
             handle.write(json.dumps(meta, indent=2))
+        if cfg.calibrate and cfg.task == "identify":  # the tracking model keeps the default settings
+            calibrate_checkpoint(cfg, val_pairs, log=log)
     return {"best_mean_top1": best, "history": history, "minutes": minutes}
 
 
@@ -573,23 +648,24 @@ def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, extra:
     """Calibrate the checkpoint at ``cfg.out`` on the validation pairs of its training labs
     (the same pairs training validated on) and write the settings into its JSON."""
     from .identify import Identifier
+    from .model import model_files
 
     start = time.time()
     corpus = load_corpus(cfg.corpus)
     if val_pairs is None:
         _, val_worms = split_worms(corpus, cfg, np.random.default_rng(cfg.seed))
         val_pairs = validation_pairs(val_worms, cfg.val_pairs_per_lab, np.random.default_rng(cfg.seed + 1))
-    out = Path(cfg.out)
+    _, config_path = model_files(cfg.out)
     own_labs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
-    settings = calibrate(Identifier.load(out, cfg.device), own_labs, log,
+    settings = calibrate(Identifier.load(cfg.out, cfg.device), own_labs, log,
                          panel_tests=_panel_tests(corpus, own_labs, cfg.train_labs))
     settings["template_chirality_doubt"] = round(mixed_handedness_rate([w for w in corpus if w.lab in cfg.train_labs]), 3)
     log(f"calibrate: template_chirality_doubt {settings['template_chirality_doubt']} "
         "(how often two worms of a training lab differ in handedness, by their names)")
-    meta = json.loads(out.with_suffix(".json").read_text())
+    meta = json.loads(config_path.read_text())
     meta.update(extra or {})
     meta.update(inference=settings, calibration_minutes=round((time.time() - start) / 60, 1))
-    with atomic_write(out.with_suffix(".json"), "w", encoding="utf-8") as handle:
+    with atomic_write(config_path, "w", encoding="utf-8") as handle:
         handle.write(json.dumps(meta, indent=2))
     log(f"calibrated inference settings: {settings}")
     return settings

@@ -1,0 +1,367 @@
+"""Review of `fdlc simulate / train / atlas / handedness / evaluate`: each test reproduces a defect
+found by hand and asserts the behaviour the project's rules ask for (one-line error and exit 2
+on bad input, never a traceback; no output lost or half-written; --resume resumes).
+
+Everything runs on small synthetic corpora written under tmp_path (worms generated from the
+shipped atlas), so no test needs the NeuroPAL corpus.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from napari_fdlc.cli import main
+from napari_fdlc.reference import generate_worm
+from napari_fdlc.table import NeuronTable, write_table
+
+TINY = {"model": {"layers": 1, "dim": 32}, "steps": 3, "batch_size": 2, "eval_every": 3,
+        "val_pairs_per_lab": 1, "val_worms_per_lab": 1, "max_neurons": 40}
+
+
+def run(*args) -> int:
+    return main([str(a) for a in args])
+
+
+def _one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("fdlc: error:"), err
+    return err[0]
+
+
+def _write_corpus(root: Path, tables: dict[str, list[NeuronTable]]) -> Path:
+    root.mkdir(parents=True, exist_ok=True)
+    rows = ["dataset,dandiset,worm,n_neurons,n_labeled"]
+    for lab, worms in tables.items():
+        (root / lab).mkdir(exist_ok=True)
+        for i, table in enumerate(worms):
+            write_table(table, root / lab / f"w{i}.csv")
+            rows.append(f"{lab},0,w{i},{len(table)},{int(table.named.sum())}")
+    (root / "worms.csv").write_text("\n".join(rows) + "\n")
+    return root
+
+
+@pytest.fixture(scope="module")
+def fake_corpus(tmp_path_factory) -> Path:
+    """Two labs of three generated (fully named) worms, laid out like the NeuroPAL corpus."""
+    worms = {lab: [generate_worm(seed=100 + 3 * k + i) for i in range(3)] for k, lab in enumerate(("NP", "EY"))}
+    return _write_corpus(tmp_path_factory.mktemp("corpus"), worms)
+
+
+@pytest.fixture
+def tiny_config(tmp_path) -> Path:
+    path = tmp_path / "tiny.json"
+    path.write_text(json.dumps(TINY))
+    return path
+
+
+def _train(corpus, config, out, *flags) -> int:
+    return run("train", "--config", config, "--corpus", corpus, "--no-calibrate", "--out", out, *flags)
+
+
+# --------------------------------------------------------------------------------------------
+# A malformed corpus folder: one line, not a pandas traceback
+
+
+@pytest.mark.parametrize("case, content", [
+    ("empty", ""),
+    ("no_dataset_column", "lab,worm\nNP,w0\n"),
+    ("header_only", "dataset,dandiset,worm,n_neurons,n_labeled\n"),
+    ("unterminated_quote", 'dataset,worm\nNP,"w0\n'),
+])
+def test_atlas_refuses_a_malformed_worms_csv_in_one_line(tmp_path, capsys, case, content):
+    """Each case raised a Python exception out of the CLI (EmptyDataError, KeyError 'dataset',
+    'argmax of an empty sequence', ParserError) instead of one line naming worms.csv."""
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    (corpus / "worms.csv").write_text(content)
+    out = tmp_path / "atlas.csv"
+    assert run("atlas", "--corpus", corpus, "--out", out) == 2
+    assert "worms.csv" in _one_line_error(capsys) or case == "header_only"
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("case", ["unnamed", "three_neurons"])
+def test_atlas_of_worms_it_cannot_use_is_one_line(tmp_path, capsys, case):
+    """A corpus whose worms carry no names (or too few to align: 3 neurons each) gave
+    `IndexError: too many indices for array` from Atlas.to_frame."""
+    if case == "unnamed":
+        worms = [NeuronTable(generate_worm(seed=s).xyz) for s in (1, 2, 3)]
+    else:
+        worms = [NeuronTable(np.array([[1.0, 2, 3], [5, 6, 7], [9, 1, 2]]), labels=np.array(["AVAL", "AVAR", "AIYL"], object))
+                 for _ in range(3)]
+    corpus = _write_corpus(tmp_path / "corpus", {"NP": worms})
+    out = tmp_path / "atlas.csv"
+    assert run("atlas", "--corpus", corpus, "--out", out) == 2
+    _one_line_error(capsys)
+    assert not out.exists()
+
+
+def test_atlas_out_onto_a_folder_names_the_output_not_a_temporary_file(tmp_path, fake_corpus, capsys):
+    """`fdlc atlas --out DIR` said `fdlc: error: /…/.DIR.k3j2.tmp: Is a directory`: the hidden
+    temporary file, which the user never named (atomic_write's os.replace error)."""
+    folder = tmp_path / "atlas_here"
+    folder.mkdir()
+    assert run("atlas", "--corpus", fake_corpus, "--out", folder) == 2
+    line = _one_line_error(capsys)
+    assert ".tmp" not in line and "atlas_here" in line, line
+
+
+# --------------------------------------------------------------------------------------------
+# fdlc train: bad options and configurations
+
+
+@pytest.mark.parametrize("seed", ["-1", str(2**70)])
+def test_train_refuses_a_seed_out_of_range_in_one_line(tmp_path, fake_corpus, tiny_config, capsys, seed):
+    """`--seed -1` gave numpy's `ValueError: expected non-negative integer`, a huge seed
+    `Overflow when unpacking long long` (fdlc simulate refuses a negative seed in words)."""
+    assert _train(fake_corpus, tiny_config, tmp_path / "m", "--seed", seed) == 2
+    _one_line_error(capsys)
+    assert not (tmp_path / "m.safetensors").exists()
+
+
+@pytest.mark.parametrize("flag", ["--eval-every", "--val-pairs-per-lab"])
+def test_train_refuses_zero_for_options_that_must_be_at_least_one(tmp_path, fake_corpus, tiny_config, capsys, flag):
+    """`--eval-every 0` and `--val-pairs-per-lab 0` were silently ignored (`if args.eval_every:`)
+    and training ran with the config's value, while -1 is refused ('must be at least 1')."""
+    assert _train(fake_corpus, tiny_config, tmp_path / "m", flag, "0") == 2
+    assert "at least 1" in _one_line_error(capsys)
+    assert not (tmp_path / "m.safetensors").exists()
+
+
+@pytest.mark.parametrize("flag", ["--train-labs", "--val-labs"])
+def test_train_refuses_labs_that_are_not_in_the_corpus(tmp_path, fake_corpus, tiny_config, capsys, flag):
+    """`--train-labs ZZ` crashed in numpy (`a must be a positive integer…`, no training worms);
+    `--val-labs ZZ` trained with no validation at all and saved a 'best' checkpoint at top-1 0.
+    `fdlc atlas --labs ZZ` and `fdlc evaluate --labs ZZ` refuse this in one line."""
+    assert _train(fake_corpus, tiny_config, tmp_path / "m", flag, "ZZ") == 2
+    assert "ZZ" in _one_line_error(capsys)
+    assert not (tmp_path / "m.safetensors").exists()
+
+
+@pytest.mark.parametrize("config", [
+    [1, 2],
+    {"steps": "abc"},
+    {"train_labs": 5},
+    {"model": {"dim": -4}},
+    {"model": 3},
+])
+def test_train_refuses_a_malformed_config_in_one_line(tmp_path, fake_corpus, capsys, config):
+    """Each gave a traceback: AttributeError ('list' has no 'get'), TypeError ('<' between str
+    and int; int not iterable; int not a mapping), RuntimeError (negative dimension)."""
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(config))
+    assert run("train", "--config", path, "--corpus", fake_corpus, "--no-calibrate", "--out", tmp_path / "m") == 2
+    _one_line_error(capsys)
+
+
+def test_train_refuses_an_unknown_device_in_one_line(tmp_path, fake_corpus, tiny_config, capsys):
+    """`--device nonsense` gave torch's RuntimeError traceback (only `cuda*` is checked)."""
+    assert _train(fake_corpus, tiny_config, tmp_path / "m", "--device", "nonsense") == 2
+    _one_line_error(capsys)
+
+
+def test_train_on_a_corpus_without_a_usable_pair_stops_with_one_line(tmp_path):
+    """Worms of 3 named neurons each: no example has the 4 matches make_example needs, and
+    sample_example's `while True` draws forever: `fdlc train` hung (killed after 40 s by hand).
+    It should refuse quickly."""
+    worm = NeuronTable(np.array([[1.0, 2, 3], [5, 6, 7], [9, 1, 2]]), labels=np.array(["AVAL", "AVAR", "AIYL"], object))
+    corpus = _write_corpus(tmp_path / "corpus", {"NP": [worm] * 3, "EY": [worm] * 3})
+    config = tmp_path / "tiny.json"
+    config.write_text(json.dumps(TINY))
+    cmd = [sys.executable, "-m", "napari_fdlc.cli", "train", "--config", str(config), "--corpus", str(corpus),
+           "--no-calibrate", "--out", str(tmp_path / "m")]
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=20, env={**_env(), "OMP_NUM_THREADS": "1"})
+    except subprocess.TimeoutExpired:
+        pytest.fail("fdlc train on worms without 4 shared names ran for 20 s (endless loop in sample_example)")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def _env():
+    import os
+
+    return dict(os.environ)
+
+
+# --------------------------------------------------------------------------------------------
+# fdlc train --out and checkpoints
+
+
+def test_train_writes_the_weights_where_it_says(tmp_path, fake_corpus, tiny_config, capsys):
+    """`--out runs/model.v2` printed 'weights at runs/model.v2.safetensors' but wrote
+    runs/model.safetensors (Path.with_suffix replaces '.v2'): a second run with
+    `--out runs/model.v3` silently replaced the first's checkpoint."""
+    out = tmp_path / "model.v2"
+    assert _train(fake_corpus, tiny_config, out) == 0
+    said = capsys.readouterr().out.strip().splitlines()[-1].rsplit("weights at ", 1)[1]
+    assert Path(said).exists(), (said, sorted(p.name for p in tmp_path.iterdir()))
+
+
+def test_save_model_interrupted_leaves_a_loadable_checkpoint(tmp_path, monkeypatch):
+    """save_model renames the new .safetensors into place, then writes the .json: a Ctrl-C (or
+    full disk) in between leaves new weights beside the old configuration, a checkpoint that
+    no longer loads ('the weights do not fit the configuration')."""
+    from napari_fdlc.model import CorrespondenceModel, load_model, save_model
+
+    path = tmp_path / "model"
+    save_model(CorrespondenceModel({"layers": 1, "dim": 32}), path, {})
+    original = Path.write_text
+
+    def interrupted(self, *args, **kwargs):
+        if self.name.endswith(".json.tmp"):
+            raise KeyboardInterrupt
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        save_model(CorrespondenceModel({"layers": 2, "dim": 64}), path, {})
+    monkeypatch.undo()
+    load_model(path)  # the old checkpoint or the new one, whole: not a mix of the two
+
+
+# --------------------------------------------------------------------------------------------
+# fdlc train --resume
+
+
+@pytest.mark.parametrize("flag", ["--resume", "--init-from"])
+def test_train_from_a_corrupt_checkpoint_is_one_line(tmp_path, fake_corpus, tiny_config, capsys, flag):
+    """A .safetensors file that is not one gave safetensors' `SafetensorError: Error while
+    deserializing header` traceback (train._load_start does not catch it; load_model does)."""
+    from napari_fdlc.model import CorrespondenceModel, save_model
+
+    checkpoint = tmp_path / "ck" / "model"
+    save_model(CorrespondenceModel(TINY["model"]), checkpoint, {"best_step": 1})
+    checkpoint.with_suffix(".safetensors").write_bytes(b"garbage, not safetensors")
+    extra = ["--resume"] if flag == "--resume" else ["--init-from", str(checkpoint)]
+    out = checkpoint if flag == "--resume" else tmp_path / "new"
+    assert _train(fake_corpus, tiny_config, out, *extra) == 2
+    _one_line_error(capsys)
+
+
+def test_resume_refuses_a_checkpoint_of_another_model_and_keeps_it(tmp_path, fake_corpus, tiny_config, capsys):
+    """`--resume` onto a checkpoint of another architecture loaded '0/35 tensors' (whatever
+    fits), trained a fresh model from the checkpoint's step count and then overwrote that
+    checkpoint with it: the old model was lost. Resuming must take every tensor or refuse."""
+    from napari_fdlc.model import CorrespondenceModel, save_model
+
+    checkpoint = tmp_path / "ck" / "model"
+    save_model(CorrespondenceModel({"layers": 2, "dim": 64}), checkpoint, {"best_step": 3, "history": []})
+    before = checkpoint.with_suffix(".safetensors").read_bytes()
+    assert _train(fake_corpus, tiny_config, checkpoint, "--resume", "--steps", "6") == 2
+    _one_line_error(capsys)
+    assert checkpoint.with_suffix(".safetensors").read_bytes() == before
+
+
+@pytest.fixture
+def stopped_run(tmp_path, fake_corpus, tiny_config):
+    """A 6-step run stopped after step 3 (validated and saved at step 3)."""
+    out = tmp_path / "run" / "model"
+    assert _train(fake_corpus, tiny_config, out, "--steps", "6", "--stop-at", "3") == 0
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["best_step"] == 3
+    return out
+
+
+def test_resume_keeps_the_validation_history(stopped_run, fake_corpus, tiny_config):
+    """After `--resume` the checkpoint's history held only the resumed steps ([6]): the
+    validation record of steps 1-3 was dropped from the JSON."""
+    assert _train(fake_corpus, tiny_config, stopped_run, "--steps", "6", "--resume") == 0
+    steps = [h["step"] for h in json.loads(stopped_run.with_suffix(".json").read_text())["history"]]
+    assert steps == [3, 6], steps
+
+
+def test_resume_does_not_replace_a_better_checkpoint(stopped_run, fake_corpus, tiny_config):
+    """train() starts `best` at -1 when resuming, so the first validation after --resume always
+    overwrites the checkpoint, however much better it had validated (here: step 3 recorded at
+    top-1 1.0, step 6 scores ~0.27 and still replaced it; with the real history too: step 3
+    0.269, step 6 0.268 replaced it)."""
+    meta_path = stopped_run.with_suffix(".json")
+    meta = json.loads(meta_path.read_text())
+    meta["history"][-1]["mean_top1"] = 1.0
+    meta_path.write_text(json.dumps(meta))
+    before = stopped_run.with_suffix(".safetensors").read_bytes()
+    assert _train(fake_corpus, tiny_config, stopped_run, "--steps", "6", "--resume") == 0
+    assert stopped_run.with_suffix(".safetensors").read_bytes() == before
+
+
+def test_resume_prints_no_python_warning(stopped_run, fake_corpus, tiny_config, capfd):
+    """Fast-forwarding the LR schedule with sched.step() before any opt.step() makes torch print
+    a multi-line `UserWarning: Detected call of lr_scheduler.step() before optimizer.step()`
+    on every --resume."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert _train(fake_corpus, tiny_config, stopped_run, "--steps", "6", "--resume") == 0
+    assert not [w for w in caught if "lr_scheduler.step()" in str(w.message)]
+
+
+def test_resumed_training_does_not_replay_the_examples_of_the_steps_done():
+    """With --workers 0 (the default) training_batches ignores ``first_step``: a run resumed at
+    step 4 is fed the very batches of steps 1, 2, 3 again (same seed, same rng state), while
+    the workers' streams are seeded by the first step. A resumed run should continue the
+    stream, not replay it."""
+    import torch
+
+    from napari_fdlc.corpus import Worm
+    from napari_fdlc.train import TrainConfig, training_batches
+
+    worms = [Worm("NP", f"w{i}", generate_worm(seed=200 + i)) for i in range(3)]
+    cfg = TrainConfig(batch_size=1, max_neurons=30)
+    first = next(training_batches(worms, cfg, None, np.random.default_rng(0), first_step=1))
+    resumed = next(training_batches(worms, cfg, None, np.random.default_rng(0), first_step=4))
+    same = all(a.shape == b.shape and torch.equal(a, b) for a, b in zip(first, resumed))
+    assert not same, "the batch of resumed step 4 is the batch of step 1"
+
+
+# --------------------------------------------------------------------------------------------
+# fdlc evaluate
+
+
+@pytest.mark.parametrize("meta", [
+    {"config": {"layers": 1, "dim": -5}},
+    {"config": {"layers": 1, "dim": 32}, "inference": [1, 2]},
+])
+def test_evaluate_weights_with_a_bad_configuration_are_one_line(tmp_path, untrained_weights, capsys, meta):
+    """A model JSON with a negative dimension gave torch's `RuntimeError: Trying to create tensor
+    with negative dimension`; an 'inference' that is not an object gave `TypeError: cannot
+    convert dictionary update sequence element` (Identifier.load)."""
+    weights = tmp_path / "model"
+    weights.with_suffix(".safetensors").write_bytes(Path(untrained_weights).with_suffix(".safetensors").read_bytes())
+    weights.with_suffix(".json").write_text(json.dumps(meta))
+    assert run("evaluate", "--corpus", tmp_path / "no_corpus", "--weights", weights, "--out", tmp_path / "a.md") == 2
+    _one_line_error(capsys)
+
+
+def test_evaluate_out_onto_a_folder_writes_nothing_and_names_the_output(tmp_path, fake_corpus, untrained_weights, capsys):
+    """`--out DIR`: the work ran to the end, the reliability plot was written into
+    DIR/../images/, then the report failed with the name of a hidden temporary file
+    (`/…/.acc.md.x1y2.tmp: Is a directory`). It should be refused as `fdlc label` refuses it:
+    before any work, naming the output, nothing written."""
+    folder = tmp_path / "acc.md"
+    folder.mkdir()
+    assert run("evaluate", "--corpus", fake_corpus, "--labs", "NP", "--pairs-per-lab", "1", "--panel-worms-per-lab", "0",
+               "--synthetic-pairs", "0", "--no-cpd", "--weights", untrained_weights, "--out", folder) == 2
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if line.startswith("fdlc: error:")]
+    assert "Traceback" not in err and len(errors) == 1, err
+    assert ".tmp" not in errors[0] and "acc.md" in errors[0], errors[0]
+    assert not (tmp_path / "images").exists()
+
+
+def test_evaluate_on_worms_too_small_for_an_atlas_is_one_line(tmp_path, untrained_weights, capsys):
+    """Worms of 3 neurons: `IndexError: too many indices for array` from the atlas built per
+    lab (reference.build_atlas with no name kept)."""
+    worm = NeuronTable(np.array([[1.0, 2, 3], [5, 6, 7], [9, 1, 2]]), labels=np.array(["AVAL", "AVAR", "AIYL"], object))
+    corpus = _write_corpus(tmp_path / "corpus", {"NP": [worm] * 3, "EY": [worm] * 3})
+    assert run("evaluate", "--corpus", corpus, "--labs", "NP", "--pairs-per-lab", "1", "--panel-worms-per-lab", "1",
+               "--synthetic-pairs", "0", "--no-cpd", "--weights", untrained_weights, "--out", tmp_path / "a.md") == 2
+    _one_line_error(capsys)
+    assert not (tmp_path / "a.md").exists()
