@@ -365,3 +365,32 @@ def test_evaluate_on_worms_too_small_for_an_atlas_is_one_line(tmp_path, untraine
                "--synthetic-pairs", "0", "--no-cpd", "--weights", untrained_weights, "--out", tmp_path / "a.md") == 2
     _one_line_error(capsys)
     assert not (tmp_path / "a.md").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# One volume where one worm is meant; the corpus's own labs by default
+
+
+@pytest.mark.parametrize("command", ["simulate", "handedness"])
+def test_a_table_of_several_time_points_is_refused_where_one_worm_is_meant(tmp_path, capsys, command):
+    """`fdlc simulate` merged the time points of a recording into one worm (every name then
+    repeated, so unnamed); `fdlc handedness` said 'fewer than 6 named neurons'. Both now say
+    the table holds several time points."""
+    from napari_fdlc.track import join_by_time
+
+    worm = generate_worm(seed=5)
+    path = tmp_path / "recording.csv"
+    write_table(join_by_time([worm, worm]), path)
+    args = ["simulate", path, "--count", "1", "--out", tmp_path / "syn"] if command == "simulate" else ["handedness", path]
+    assert run(*args) == 2
+    assert "time points" in _one_line_error(capsys)
+
+
+def test_evaluate_defaults_to_the_labs_the_corpus_has(fake_corpus, untrained_weights, tmp_path, capsys):
+    """`fdlc evaluate` without --labs asked for all five built-in labs and failed on a corpus of
+    two ('no worms of lab(s) KK, SF, SK1')."""
+    out = tmp_path / "a.md"
+    assert run("evaluate", "--corpus", fake_corpus, "--weights", untrained_weights, "--pairs-per-lab", "1",
+               "--panel-worms-per-lab", "1", "--synthetic-pairs", "0", "--no-cpd", "--out", out) == 0
+    report = out.read_text()
+    assert "| NP |" in report and "| EY |" in report

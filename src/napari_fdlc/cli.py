@@ -78,16 +78,18 @@ def _run_simulate(args) -> int:
     import numpy as np
 
     from .simulate import simulate_worm
-    from .table import read_table, write_table
+    from .table import read_volume, write_table
 
     if args.count < 1:
         raise FdlcError("--count must be at least 1")
     if args.seed < 0:
         raise FdlcError(f"--seed must be 0 or more (got {args.seed})")
     out = Path(args.out)
+    if not args.out:
+        raise FdlcError("--out: give the folder that receives the synthetic worms")
     if out.exists() and not out.is_dir():
         raise FdlcError(f"{out}: --out must be a folder (it receives <stem>_synN.csv), not a file")
-    table = read_table(args.table)
+    table = read_volume(args.table, "give one time point (one worm) to simulate from")
     rng = np.random.default_rng(args.seed)
     for k in range(args.count):
         synth = simulate_worm(table, rng)
@@ -179,10 +181,11 @@ def _handedness_parser(sub) -> None:
 
 def _run_handedness(args) -> int:
     from .evaluate import handedness
-    from .table import read_table
+    from .table import read_volume
 
-    tables = [read_table(t) for t in args.tables]  # all read (and refused) before any answer
-    reference = read_table(args.template) if args.template else None
+    one = "give one time point (one labelled worm) per table"
+    tables = [read_volume(t, one) for t in args.tables]  # all read (and refused) before any answer
+    reference = read_volume(args.template, one) if args.template else None
     answers = [handedness(t, reference) for t in tables]
     for path, answer in zip(args.tables, answers):
         print(f"{path}: {answer}")
