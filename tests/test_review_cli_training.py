@@ -394,3 +394,15 @@ def test_evaluate_defaults_to_the_labs_the_corpus_has(fake_corpus, untrained_wei
                "--panel-worms-per-lab", "1", "--synthetic-pairs", "0", "--no-cpd", "--out", out) == 0
     report = out.read_text()
     assert "| NP |" in report and "| EY |" in report
+
+
+def test_a_new_run_from_a_checkpoints_configuration_does_not_replace_it(tmp_path, fake_corpus, tiny_config, capsys):
+    """`fdlc train --config runs/model.json` (a checkpoint's JSON) without --out took the
+    checkpoint's own --out, and the new run replaced the checkpoint it was configured from."""
+    out = tmp_path / "run" / "model"
+    assert _train(fake_corpus, tiny_config, out) == 0
+    before = out.with_suffix(".safetensors").read_bytes()
+    capsys.readouterr()
+    assert run("train", "--config", out.with_suffix(".json"), "--corpus", fake_corpus, "--no-calibrate") == 2
+    assert "--out" in _one_line_error(capsys)
+    assert out.with_suffix(".safetensors").read_bytes() == before

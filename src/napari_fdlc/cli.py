@@ -139,6 +139,10 @@ def _run_train(args) -> int:
         if value is not None:
             setattr(cfg, key, value)
     cfg.seed = args.seed if args.seed is not None else cfg.seed
+    if args.config and not (args.out or args.resume or args.calibrate_only) and \
+            model_files(cfg.out)[1].resolve() == Path(args.config).resolve():
+        raise FdlcError(f"{args.config}: a new run from this checkpoint's configuration would replace the checkpoint; "
+                        "give --out (or --resume to continue it)")
     cfg.out = args.out or cfg.out
     cfg.resume = args.resume
     cfg.calibrate = not args.no_calibrate
