@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .errors import FdlcError
+from .errors import FdlcError, check_output
 from .geometry import CHIRALITIES
 
 METHODS = ("fdlc", "cpd")
@@ -214,8 +214,6 @@ def _atlas_parser(sub) -> None:
 def _run_atlas(args) -> int:
     from .corpus import load_corpus
     from .reference import build_atlas
-
-    from .errors import check_output
 
     if not 0 < args.min_frequency <= 1:
         raise FdlcError(f"--min-frequency must be a fraction of worms in (0, 1] (got {args.min_frequency})")

@@ -644,7 +644,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
     return {"best_mean_top1": best, "history": history, "minutes": minutes}
 
 
-def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, extra: dict | None = None, log=print) -> dict:
+def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, log=print) -> dict:
     """Calibrate the checkpoint at ``cfg.out`` on the validation pairs of its training labs
     (the same pairs training validated on) and write the settings into its JSON."""
     from .identify import Identifier
@@ -663,7 +663,6 @@ def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, extra:
     log(f"calibrate: template_chirality_doubt {settings['template_chirality_doubt']} "
         "(how often two worms of a training lab differ in handedness, by their names)")
     meta = json.loads(config_path.read_text())
-    meta.update(extra or {})
     meta.update(inference=settings, calibration_minutes=round((time.time() - start) / 60, 1))
     with atomic_write(config_path, "w", encoding="utf-8") as handle:
         handle.write(json.dumps(meta, indent=2))
