@@ -26,16 +26,23 @@ from .table import COORDS, NeuronTable, read_volume, warn_implausible_scales, wr
 _OUTPUT_COLUMNS = re.compile(r"neuron_index|auto_id|auto_conf|(cand|prob)_\d+")
 
 
+def _six_decimals(p: np.ndarray) -> np.ndarray:
+    """Probabilities to 6 decimals, rounded down, so that a row's written candidates still sum
+    to at most 1 (each rounded to nearest, 0.9999906 + 2 × 0.0000047 was written as 1.000001);
+    a hair (1e-12) is added first so that an exact 0.3, stored as 0.29999…, stays 0.3."""
+    return np.floor(np.asarray(p, float) * 1e6 + 1e-6) / 1e6
+
+
 def labelling_frame(test: NeuronTable, result: Labelling, top_k: int = 3) -> pd.DataFrame:
     k = max(top_k, 3)
     cand, cand_p = result.candidates(k)
     columns = {"neuron_index": np.arange(len(test))}
     columns.update({c: test.xyz[:, i] for i, c in enumerate(COORDS)})
     columns["auto_id"] = result.auto_id
-    columns["auto_conf"] = np.round(result.auto_conf, 6)
+    columns["auto_conf"] = _six_decimals(result.auto_conf)
     for r in range(k):
         columns[f"cand_{r + 1}"] = [row[r] for row in cand]
-        columns[f"prob_{r + 1}"] = np.round(cand_p[:, r], 6)
+        columns[f"prob_{r + 1}"] = _six_decimals(cand_p[:, r])
     # The test's other columns as they were written (text read from a file), not as parsed.
     given = test.text if test.text is not None else test.to_dataframe()
     for c in given.columns:

@@ -8,6 +8,7 @@ and the column.
 
 from __future__ import annotations
 
+import csv
 import io
 import os
 from dataclasses import dataclass, field
@@ -232,11 +233,26 @@ def read_table(path: str | os.PathLike, names: bool = True, unique_names: bool =
 
 def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
     try:
-        return pd.read_csv(io.StringIO(text), skiprows=skiprows, dtype=str, keep_default_na=False)
+        df = pd.read_csv(io.StringIO(text), skiprows=skiprows, dtype=str, keep_default_na=False)
     except pd.errors.EmptyDataError:
         raise TableError(f"{name}: the file has no header row") from None
     except pd.errors.ParserError as exc:
         raise TableError(f"{name}: not a valid CSV file ({str(exc).splitlines()[0]})") from None
+    lines = _record_lines(text, skiprows)
+    if len(lines) == len(df):
+        df.attrs["lines"] = lines  # for messages: blank lines and quoted line breaks shift rows
+    return df
+
+
+def _record_lines(text: str, skiprows: int) -> list[int]:
+    """The file line on which each data row starts, skipping blank lines as pandas does."""
+    reader = csv.reader(io.StringIO(text))
+    starts, previous = [], 0
+    for row in reader:
+        start, previous = previous + 1, reader.line_num
+        if start > skiprows and row and not (len(row) == 1 and not row[0].strip()):
+            starts.append(start)
+    return starts[1:]  # the first is the header
 
 
 def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, allow_empty: bool) -> np.ndarray:
@@ -248,9 +264,8 @@ def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, a
     if bad.any():
         row = int(np.argmax(bad))
         shown = raw.iloc[row] or "an empty cell"
-        raise TableError(
-            f"{name}: line {row + first_line}, column '{column}': {shown!s} is not a finite number"
-        )
+        line = df.attrs["lines"][row] if "lines" in df.attrs else row + first_line
+        raise TableError(f"{name}: line {line}, column '{column}': {shown!s} is not a finite number")
     return values
 
 
