@@ -61,3 +61,12 @@ def test_a_bad_cell_is_reported_at_its_line_in_the_file(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "column 'y_um'" in err[0]
     assert "line 5" in err[0], err[0]
+
+
+def test_one_test_into_a_folder_that_does_not_exist_yet(tmp_path):
+    """`fdlc label a.csv --out results/run1/a_ids.csv` was refused ("the folder does not exist")
+    while segment and track create theirs: a benchmark writing to a fresh results path failed."""
+    _, sample = sample_paths()
+    out = tmp_path / "results" / "run1" / "ids.csv"
+    assert run("label", sample, "--out", out) == 0
+    assert len(pd.read_csv(out)) == len(pd.read_csv(sample))

@@ -66,8 +66,8 @@ def _output_paths(tests: list[str], out: str, inputs: list[str]) -> list[Path]:
     as_folder = len(tests) > 1 or out_path.is_dir() or out.endswith(("/", os.sep))
     if as_folder and out_path.exists() and not out_path.is_dir():
         raise FdlcError(f"{out}: with several test tables --out must be a directory")
-    if not as_folder:
-        return [check_output(out, inputs)]
+    if not as_folder:  # its folder is created as segment's and track's are (a fresh results path)
+        return [check_output(out, inputs, create_folder=True)]
     return [check_output(out_path / f"{stem}.csv", inputs, create_folder=True) for stem in stems]
 
 
