@@ -378,3 +378,12 @@ def test_nd2_problems(tmp_path):
     with pytest.raises(FdlcError) as exc:
         read_nd2(tmp_path / "w.nd2", opener=lambda p: uncalibrated)
     one_line_error(exc, "voxel size")
+
+
+def test_an_axis_of_unknown_meaning_is_asked_for_not_called_2d(tmp_path):
+    """axes 'CQYX' (Q: tifffile's axis of unknown meaning, often a plain stack's Z) was refused
+    as "a 2D image"; it is an unknown axis, and the message says how to name it."""
+    path = tmp_path / "a.tif"
+    tifffile.imwrite(path, np.zeros((2, 5, 16, 16), np.uint16))
+    with pytest.raises(FdlcError, match="unknown image axes 'CQYX'"):
+        read_stack(path, axes="CQYX")

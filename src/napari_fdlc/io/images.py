@@ -350,9 +350,9 @@ def finish_stack(
     elif time:
         data = data[None]
     lead = 1 if time else 0  # the T axis in front, kept through the steps below
-    if "Z" not in axes:
-        raise ImageError(f"{source}: a 2D image (axes {axes}); fdlc needs a 3D stack with several Z planes")
     unknown = [a for a in axes if a not in "CZYX"]
+    if "Z" not in axes and not unknown:  # (an axis of unknown meaning may be Z: asked for below)
+        raise ImageError(f"{source}: a 2D image (axes {axes}); fdlc needs a 3D stack with several Z planes")
     if unknown or len(set(axes)) != len(axes) or "Y" not in axes or "X" not in axes:
         raise ImageError(
             f"{source}: unknown image axes '{axes}'; give them explicitly, e.g. axes='CZYX' (--axes CZYX)"
