@@ -124,7 +124,7 @@ def _writable_folder(folder: Path) -> bool:
     return folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)
 
 
-def _user_session_file(key: str) -> Path:
+def user_session_file(key: str) -> Path:
     resolved = str(Path(key).resolve()) if _is_path_key(key) else key
     digest = hashlib.sha1(resolved.encode("utf-8")).hexdigest()[:12]
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(key).name if _is_path_key(key) else key).strip("_.") or "image"
@@ -140,7 +140,7 @@ def session_file_for(image: str | os.PathLike) -> Path:
         path = Path(key)
         if _writable_folder(path.parent):
             return path.parent / (path.name + SESSION_SUFFIX)
-    return _user_session_file(key)
+    return user_session_file(key)
 
 
 def find_session(image: str | os.PathLike) -> Path | None:
@@ -150,11 +150,10 @@ def find_session(image: str | os.PathLike) -> Path | None:
     if _is_path_key(key):
         path = Path(key)
         candidates.append(path.parent / (path.name + SESSION_SUFFIX))
-    candidates.append(_user_session_file(key))
-    for c in candidates:
-        if c.is_file():
-            return c
-    return None
+    candidates.append(user_session_file(key))
+    existing = [c for c in candidates if c.is_file()]
+    # The latest: after a save beside the image failed, the session went on in the user's folder.
+    return max(existing, key=lambda c: c.stat().st_mtime_ns) if existing else None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -246,7 +245,11 @@ def set_aside(path: str | os.PathLike) -> Path | None:
         kept = path.with_name(f"{stem}.fdlc-session.{stamp}{'' if n == 0 else f'-{n}'}.json")
         if not kept.exists():
             break
-    os.replace(path, kept)
+    try:
+        os.replace(path, kept)
+    except OSError as exc:
+        raise FdlcError(f"{path}: could not be kept aside as {kept.name} ({exc.strerror or exc}); "
+                        "move it away by hand to keep its decisions") from None
     return kept
 
 
@@ -363,13 +366,23 @@ class ReviewSession:
         name not taken by a user decision elsewhere."""
         s = self._s
         taken = set(self.user_names())
-        return np.array(
+        shown = np.array(
             [
                 st == "auto" and bool(a) and c >= self.threshold and a not in taken
                 for a, c, st in zip(s.auto_id, s.auto_conf, s.status)
             ],
             dtype=bool,
         )
+        # One neuron per name: a decision cleared after a re-labelling brings back the machine's
+        # earlier answer there, which the re-labelling may have given to another neuron since.
+        best: dict[str, int] = {}
+        for i in np.flatnonzero(shown):
+            j = best.setdefault(s.auto_id[i], i)
+            if j != i:
+                keep, drop = (i, j) if s.auto_conf[i] > s.auto_conf[j] else (j, i)
+                best[s.auto_id[i]] = keep
+                shown[drop] = False
+        return shown
 
     def final_names(self) -> list[str]:
         """Final name per row (without '?'): the user's, else the shown automatic one, else ''."""
@@ -429,8 +442,12 @@ class ReviewSession:
             self.save(self.path)
             self.last_save_error = None
             return True
+        except (TypeError, ValueError) as exc:  # something in the session JSON cannot hold
+            self.last_save_error = f"{self.path}: the session could not be saved ({exc})"
+            self._emit("save_error", None)
+            return False
         except OSError as exc:
-            fallback = _user_session_file(self.image or str(self.path))
+            fallback = user_session_file(self.image or str(self.path))
             if fallback != self.path:
                 try:
                     self.save(fallback)
@@ -484,7 +501,7 @@ class ReviewSession:
             "labelled": s.labelled,
             "vocabulary": self.vocabulary,
             "order": list(s.order),
-            "settings": self.settings,
+            "settings": _json_safe(self.settings),
             "neurons": neurons,
             "extra": extra,
         }
@@ -493,7 +510,10 @@ class ReviewSession:
     def from_dict(cls, d: dict, source: str = "<session>", path: str | os.PathLike | None = None) -> "ReviewSession":
         if not isinstance(d, dict) or d.get("format") != SESSION_FORMAT:
             raise FdlcError(f"{source}: not a napari-fdlc session file")
-        if int(d.get("version", 0)) > SESSION_VERSION:
+        version = d.get("version", 0)
+        if isinstance(version, bool) or not isinstance(version, int):
+            raise FdlcError(f"{source}: damaged session file (version {version!r} is not a whole number)")
+        if version > SESSION_VERSION:
             raise FdlcError(f"{source}: session written by a newer napari-fdlc (version {d.get('version')}); update the plugin")
         try:
             nd = d["neurons"]
@@ -502,6 +522,9 @@ class ReviewSession:
             colours = {c: np.asarray(_nan(nd[c]), dtype=float) for c in COLOUR_CHANNELS if c in nd}
             extra = pd.DataFrame({k: v for k, v in (d.get("extra") or {}).items() if len(v) == n}, index=range(n))
             table = NeuronTable(xyz, colours, extra=extra, source=source)
+            voxel = d.get("voxel_size_zyx")
+            if voxel is not None and (len(voxel) != 3 or not all(math.isfinite(float(v)) and float(v) > 0 for v in voxel)):
+                raise ValueError(f"voxel_size_zyx {voxel!r} is not three positive numbers")
             session = cls(
                 table,
                 threshold=float(d.get("threshold", DEFAULT_THRESHOLD)),
@@ -525,7 +548,8 @@ class ReviewSession:
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise FdlcError(f"{source}: damaged session file ({type(exc).__name__}: {exc})") from None
         bad = [st for st in s.status if st not in STATUSES]
-        lengths = {len(s.auto_id), len(s.user_id), len(s.status), len(s.user_conf), len(s.auto_conf)}
+        lengths = {len(s.auto_id), len(s.user_id), len(s.status), len(s.user_conf), len(s.auto_conf), len(s.cand_p)}
+        lengths |= {len(nd[f"cand_{k + 1}"]) for k in range(K)}
         if bad or lengths != {n}:
             raise FdlcError(f"{source}: damaged session file (inconsistent neuron rows)")
         return session
@@ -538,7 +562,7 @@ class ReviewSession:
             d = json.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise FdlcError(f"{path}: no such session file") from None
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, RecursionError) as exc:
             raise FdlcError(f"{path}: unreadable session file ({exc})") from None
         return cls.from_dict(d, source=str(path), path=path)
 
@@ -595,7 +619,7 @@ class ReviewSession:
 
     def _check_name(self, name: str, row: int) -> None:
         if not _NAME_OK.match(name):
-            raise FdlcError(f"'{name}': not a neuron name (letters, digits, '-', '_', '.' only)")
+            raise FdlcError(f"{name!r}: not a neuron name (letters, digits, '-', '_', '.', \"'\" only)")
         holder = self.user_names().get(name)
         if holder is not None and holder != row:
             raise FdlcError(f"{name} is already the name of neuron {holder}; clear it there first")
@@ -826,11 +850,13 @@ class ReviewSession:
         ``'neuropal_id'`` (NeuroPAL_ID "Save ID Info" CSV: User ID = the user's decisions, Auto ID
         = the automatic names, 1-based internal coordinates). An existing file is replaced only
         with ``overwrite=True``."""
-        path = Path(path)
         if format not in EXPORT_FORMATS:
             raise FdlcError(f"export format '{format}': use 'fdlc' or 'neuropal_id'")
-        if path.is_dir():
+        if not len(self):
+            raise FdlcError("no neurons to export")
+        if str(path).endswith(("/", os.sep)) or Path(path).is_dir():
             raise FdlcError(f"{path}: is a folder; give a file name")
+        path = Path(path)
         if path.exists() and not overwrite:
             raise FdlcError(f"{path}: already exists; choose another name or allow overwriting")
         try:
@@ -869,9 +895,9 @@ def _same(a: _State, b: _State) -> bool:
         and a.cand == b.cand
         and a.order == b.order
         and a.labelled == b.labelled
-        and np.array_equal(a.auto_conf, b.auto_conf)
+        and np.array_equal(a.auto_conf, b.auto_conf, equal_nan=True)
         and np.array_equal(a.user_conf, b.user_conf, equal_nan=True)
-        and np.array_equal(a.cand_p, b.cand_p)
+        and np.array_equal(a.cand_p, b.cand_p, equal_nan=True)
     )
 
 
@@ -881,6 +907,16 @@ def _floats(values) -> list:
 
 def _nan(values) -> list:
     return [np.nan if v is None else v for v in values]
+
+
+def _json_safe(value):
+    """``value`` (free-form settings) with numpy numbers as Python ones and non-finite numbers
+    as null, so that the session's JSON can always hold it."""
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return _json_value(value)
 
 
 def _json_value(v):

@@ -225,6 +225,37 @@ def test_auto_label_never_overwrites_a_session_file_it_could_not_read(make_napar
     assert kept, "the unreadable session file was overwritten"
 
 
+def test_a_session_file_that_cannot_be_set_aside_is_left_untouched(make_napari_viewer, sample_files, identifier, templates,
+                                                                     tmp_path, monkeypatch):
+    """... and when it cannot even be renamed (a read-only folder), Auto-label says so, leaves
+    it as it is and keeps the new session in the user's data folder (it used to fail with
+    "unexpected error ... please report it", on every run)."""
+    import os
+
+    from napari_fdlc._napari import _widget
+
+    stack_path, session_path = _label_a_copy_of_the_sample(make_napari_viewer(), sample_files, identifier, templates, tmp_path)
+    saved = json.loads(session_path.read_text())
+    newer = json.dumps({**saved, "version": saved["version"] + 1})
+    session_path.write_text(newer)
+    real_replace = os.replace
+
+    def refuse_rename(src, dst):
+        if os.fspath(src) == os.fspath(session_path):
+            raise PermissionError(13, "Permission denied", os.fspath(src))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", refuse_rename)
+    viewer = make_napari_viewer()
+    viewer.open(stack_path, plugin="napari-fdlc")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    assert widget.auto_label() is not None, widget.last_error
+    assert session_path.read_text() == newer
+    assert widget.session.path == _widget.user_session_file(widget.session.image)
+
+
 def test_an_image_without_a_file_does_not_get_another_images_session(make_napari_viewer, identifier, templates, qtbot):
     """Images made in napari (a script, the console, another plugin) have no file: their
     session is keyed by the layer's name and a fingerprint of its data, so another image with

@@ -67,6 +67,7 @@ from ..review import (
     save_preferences,
     session_file_for,
     set_aside,
+    user_session_file,
 )
 from ..table import COLOUR_CHANNELS, NeuronTable
 from ._io import RESULT_SUFFIX, image_key_of
@@ -928,7 +929,11 @@ class AutoLabelWidget(QWidget):
         key = image_key or f"layer:{source_name}"
         path = session_file_for(key)
         if lost or unreadable:
-            kept = set_aside(path)
+            try:
+                kept = set_aside(path)
+            except FdlcError as exc:  # e.g. a read-only folder: the old file stays as it is
+                self._notify_warning(str(exc))
+                kept, path = None, user_session_file(key)
             where = f"; the earlier session is kept in {kept}" if kept else ""
             if unreadable:
                 self._notify_warning(f"the saved session of this image could not be read ({unreadable}){where}")

@@ -1,0 +1,250 @@
+"""Defects found in napari_fdlc.review (sessions, autosave, set-aside files, export).
+
+Each test asserts the behaviour the project promises (docs/gui.md §5-6, review.py's docstrings):
+annotations are never lost, a bad session file is one FdlcError line, exports read back.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from napari_fdlc.errors import FdlcError
+from napari_fdlc.match import make_labelling
+from napari_fdlc.review import ReviewSession, carry_decisions, find_session, session_file_for, set_aside
+from napari_fdlc.table import NeuronTable, read_table
+
+NAMES = ["AVAL", "AVAR", "RMDL", "RMDR", "SMDVL"]
+VOXEL = (1.0, 0.25, 0.25)
+# neuron j most likely NAMES[j]; neuron 2's second choice is AVAR, so that once neuron 1 is
+# fixed to RMDL, a re-labelling gives AVAR to neuron 2.
+PROBS = np.array(
+    [
+        [0.90, 0.05, 0.02, 0.01, 0.01],
+        [0.10, 0.70, 0.10, 0.05, 0.00],
+        [0.05, 0.30, 0.60, 0.05, 0.00],
+        [0.00, 0.00, 0.10, 0.50, 0.35],
+    ]
+)
+
+
+def _table(n: int = 4) -> NeuronTable:
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(5, 40, (n, 3))
+    colours = {c: rng.gamma(2.0, 100.0, n) for c in "RGBW"}
+    return NeuronTable(xyz, colours, extra=pd.DataFrame({"radius_um": np.full(n, 1.5)}))
+
+
+def _session(**kwargs) -> ReviewSession:
+    return ReviewSession(_table(), make_labelling(NAMES, PROBS), voxel_size_zyx=VOXEL, **kwargs)
+
+
+@pytest.fixture(autouse=True)
+def _session_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("FDLC_SESSION_DIR", str(tmp_path / "user-data"))
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+
+
+def _write_session(tmp_path, d: dict):
+    path = tmp_path / "s.fdlc-session.json"
+    path.write_text(json.dumps(d), encoding="utf-8")
+    return path
+
+
+def _assert_unique_final_names_read_back(session: ReviewSession, out) -> None:
+    shown = [n for n in session.final_names() if n]
+    assert len(shown) == len(set(shown)), f"a name is shown on two neurons: {session.final_names()}"
+    back = read_table(session.export(out))
+    assert list(back.labels) == session.final_names()
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. Clearing a decision brings back the machine's *old* answer, which the re-labelling (or the
+#    new labelling a decision was carried into) has meanwhile given to another neuron: two
+#    neurons show the same name, and the export read back loses both.
+
+
+def test_clearing_a_decision_after_relabel_never_shows_a_name_twice(tmp_path):
+    s = _session(threshold=0.2)
+    s.assign(1, "RMDL")  # neuron 1's automatic answer AVAR is kept in auto_id
+    s.set_labelling(make_labelling(NAMES, PROBS, fixed=s.fixed()), "re-label")  # AVAR goes to neuron 2
+    s.clear(1)
+    _assert_unique_final_names_read_back(s, tmp_path / "ids.csv")
+
+
+def test_clearing_a_carried_decision_never_shows_a_name_twice(tmp_path):
+    old = _session(threshold=0.2)
+    old.assign(1, "RMDL")
+    carried = carry_decisions(old, old.table.xyz)
+    fixed = {i: d.name for i, d in carried.items()}
+    new = ReviewSession(_table(), make_labelling(NAMES, PROBS, fixed=fixed), threshold=0.2, voxel_size_zyx=VOXEL)
+    new.seed_decisions(carried)  # restores the old machine answer AVAR on neuron 1
+    new.clear(1)
+    _assert_unique_final_names_read_back(new, tmp_path / "ids.csv")
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. One failed autosave beside the image moves the session to the user's data folder for good,
+#    but find_session (what reopening the image restores) still prefers the stale file beside
+#    the image: the later decisions are not restored.
+
+
+def test_after_a_failed_autosave_reopening_restores_the_latest_decisions(tmp_path, monkeypatch):
+    image = tmp_path / "worm.tif"
+    image.write_bytes(b"II*\x00")
+    path = session_file_for(image)
+    s = _session(image=str(image), path=path)
+    s.accept(0)
+    real_replace = os.replace
+    failing = {"on": True}
+
+    def replace(src, dst):
+        if failing["on"] and os.fspath(dst) == os.fspath(path):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    s.accept(1)  # disk full for a moment
+    failing["on"] = False
+    s.accept(2)
+    found = find_session(image)
+    assert found is not None
+    restored = ReviewSession.load(found)
+    assert restored.status == s.status == ["accepted", "accepted", "accepted", "auto"]
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. Damaged session files: one FdlcError line, never a traceback (the widget only catches
+#    FdlcError when it reads the saved session of an image).
+
+
+@pytest.mark.parametrize("version", ["x", None, [2], "1.5", {"major": 1}])
+def test_session_file_with_a_garbage_version_is_an_fdlc_error(tmp_path, version):
+    d = _session().to_dict()
+    d["version"] = version
+    with pytest.raises(FdlcError):
+        ReviewSession.load(_write_session(tmp_path, d))
+
+
+def test_deeply_nested_garbage_session_file_is_an_fdlc_error(tmp_path):
+    path = tmp_path / "s.fdlc-session.json"
+    path.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(FdlcError):
+        ReviewSession.load(path)
+
+
+def _load_and_export(tmp_path, d: dict) -> None:
+    """Loading may refuse the file (FdlcError); a loaded session must export (or refuse) in one line."""
+    try:
+        s = ReviewSession.load(_write_session(tmp_path, d))
+    except FdlcError:
+        return
+    for fmt in ("fdlc", "neuropal_id"):
+        try:
+            s.export(tmp_path / f"out_{fmt}.csv", format=fmt)
+        except FdlcError:
+            pass
+
+
+def test_session_file_with_a_voxel_size_of_two_values(tmp_path):
+    d = _session().to_dict()
+    d["voxel_size_zyx"] = [1.0, 0.25]
+    _load_and_export(tmp_path, d)
+
+
+def test_session_file_with_more_probabilities_than_neurons(tmp_path):
+    d = _session().to_dict()
+    for k in (1, 2, 3):
+        d["neurons"][f"prob_{k}"] = d["neurons"][f"prob_{k}"] + [0.1]
+    _load_and_export(tmp_path, d)
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. A session file that must be set aside but cannot be renamed (read-only folder): a raw
+#    PermissionError (the widget reports "unexpected error ... please report it").
+
+
+def test_set_aside_in_a_read_only_folder_is_an_fdlc_error_and_keeps_the_file(tmp_path, monkeypatch):
+    s = _session()
+    s.accept(0)
+    path = s.save(tmp_path / "worm.tif.fdlc-session.json")
+    before = path.read_text()
+
+    def replace(src, dst):
+        raise PermissionError(errno.EACCES, "Permission denied", os.fspath(src))
+
+    monkeypatch.setattr(os, "replace", replace)
+    try:
+        set_aside(path)
+    except FdlcError:
+        pass
+    assert path.read_text() == before
+
+
+# ---------------------------------------------------------------------------------------------
+# 5. Autosave only catches OSError: a settings value JSON cannot hold makes every edit raise,
+#    and the file is no longer updated (nor is a save error reported).
+
+
+@pytest.mark.parametrize("value", [np.int64(3), float("nan")], ids=["numpy-int", "nan"])
+def test_autosave_never_raises_out_of_an_edit(tmp_path, value):
+    path = tmp_path / "worm.tif.fdlc-session.json"
+    s = _session(path=path)
+    s.settings["value"] = value  # settings are documented as free-form
+    s.accept(0)  # must not raise
+    saved = json.loads(path.read_text()) if path.exists() else None
+    assert (saved is not None and saved["neurons"]["status"][0] == "accepted") or s.last_save_error
+
+
+# ---------------------------------------------------------------------------------------------
+# 6. NaN confidences: _same compares auto_conf / cand_p without equal_nan, so every no-op edit
+#    is recorded (undo history grows, autosave runs, methods return True).
+
+
+def test_no_op_edits_with_a_nan_confidence_are_not_recorded():
+    lab = make_labelling(NAMES, PROBS)
+    lab.auto_conf = np.array(lab.auto_conf, dtype=float)
+    lab.auto_conf[1] = np.nan
+    s = ReviewSession(_table(), lab)
+    assert s.clear(2) is False  # nothing to clear
+    assert s.accept(0) is True
+    assert s.accept(0) is False  # already accepted
+    assert s.history() == ["accept AVAL for neuron 0"]
+
+
+# ---------------------------------------------------------------------------------------------
+# 7. Exports that cannot be read back.
+
+
+def test_export_of_a_session_without_neurons_is_refused_or_readable(tmp_path):
+    s = ReviewSession(NeuronTable(np.zeros((0, 3))))
+    for fmt in ("fdlc", "neuropal_id"):
+        try:
+            out = s.export(tmp_path / f"empty_{fmt}.csv", format=fmt)
+        except FdlcError:
+            continue
+        read_table(out)  # written, so it must read back
+
+
+def test_export_to_a_path_ending_in_a_separator_is_refused(tmp_path):
+    s = _session()
+    target = str(tmp_path / "results") + os.sep  # meant as a folder (as check_output reads it)
+    with pytest.raises(FdlcError, match="folder"):
+        s.export(target)
+    assert not (tmp_path / "results").is_file()
+
+
+# ---------------------------------------------------------------------------------------------
+# 8. One line per error.
+
+
+def test_a_typed_name_with_a_line_break_gives_a_one_line_error():
+    s = _session()
+    with pytest.raises(FdlcError) as exc:
+        s.assign(1, "AV\nAL")
+    assert "\n" not in str(exc.value)
