@@ -180,17 +180,31 @@ def _user_ids(path):
         return []
 
 
-def _label_a_copy_of_the_sample(viewer, sample_files, identifier, templates, tmp_path):
-    stack_path = tmp_path / "worm.ome.tif"
-    shutil.copy(sample_files[0], stack_path)
+def _auto_label_widget(viewer, stack_path, identifier, templates):
+    """``stack_path`` opened in ``viewer``, the Auto-label widget docked and set up (not run)."""
     viewer.open(stack_path, plugin="napari-fdlc")
     _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
     widget.identifier = identifier
     widget.set_templates(templates)
+    return widget
+
+
+def _label_a_copy_of_the_sample(viewer, sample_files, identifier, templates, tmp_path):
+    stack_path = tmp_path / "worm.ome.tif"
+    shutil.copy(sample_files[0], stack_path)
+    widget = _auto_label_widget(viewer, stack_path, identifier, templates)
     widget.auto_label()
     row = int(np.flatnonzero(np.asarray(widget.session.auto_id) != "")[0])
     widget.accept(row)
     return stack_path, widget.session.path
+
+
+def _from_a_newer_version(session_path) -> str:
+    """Make the session file unreadable (written by a newer napari-fdlc); returns its text."""
+    saved = json.loads(session_path.read_text())
+    newer = json.dumps({**saved, "version": saved["version"] + 1})
+    session_path.write_text(newer)
+    return newer
 
 
 def test_a_session_that_cannot_be_restored_is_reported_in_the_gui(make_napari_viewer, sample_files, identifier, templates, tmp_path):
@@ -199,8 +213,7 @@ def test_a_session_that_cannot_be_restored_is_reported_in_the_gui(make_napari_vi
     from napari.utils.notifications import notification_manager
 
     stack_path, session_path = _label_a_copy_of_the_sample(make_napari_viewer(), sample_files, identifier, templates, tmp_path)
-    saved = json.loads(session_path.read_text())
-    session_path.write_text(json.dumps({**saved, "version": saved["version"] + 1}))
+    _from_a_newer_version(session_path)
     before = len(notification_manager.records)
     layers = make_napari_viewer().open(stack_path, plugin="napari-fdlc")
     assert [type(layer).__name__ for layer in layers] == ["Image"] * 4  # not restored ...
@@ -212,15 +225,8 @@ def test_auto_label_never_overwrites_a_session_file_it_could_not_read(make_napar
     """... and Auto-label on that image keeps the unreadable file (set aside) instead of
     writing a new session over it."""
     stack_path, session_path = _label_a_copy_of_the_sample(make_napari_viewer(), sample_files, identifier, templates, tmp_path)
-    saved = json.loads(session_path.read_text())
-    newer = json.dumps({**saved, "version": saved["version"] + 1})
-    session_path.write_text(newer)
-    viewer = make_napari_viewer()
-    viewer.open(stack_path, plugin="napari-fdlc")
-    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
-    widget.identifier = identifier
-    widget.set_templates(templates)
-    widget.auto_label()
+    newer = _from_a_newer_version(session_path)
+    _auto_label_widget(make_napari_viewer(), stack_path, identifier, templates).auto_label()
     kept = [p for p in tmp_path.iterdir() if p.is_file() and p.read_text(errors="replace") == newer]
     assert kept, "the unreadable session file was overwritten"
 
@@ -235,9 +241,7 @@ def test_a_session_file_that_cannot_be_set_aside_is_left_untouched(make_napari_v
     from napari_fdlc._napari import _widget
 
     stack_path, session_path = _label_a_copy_of_the_sample(make_napari_viewer(), sample_files, identifier, templates, tmp_path)
-    saved = json.loads(session_path.read_text())
-    newer = json.dumps({**saved, "version": saved["version"] + 1})
-    session_path.write_text(newer)
+    newer = _from_a_newer_version(session_path)
     real_replace = os.replace
 
     def refuse_rename(src, dst):
@@ -246,11 +250,7 @@ def test_a_session_file_that_cannot_be_set_aside_is_left_untouched(make_napari_v
         return real_replace(src, dst)
 
     monkeypatch.setattr(os, "replace", refuse_rename)
-    viewer = make_napari_viewer()
-    viewer.open(stack_path, plugin="napari-fdlc")
-    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
-    widget.identifier = identifier
-    widget.set_templates(templates)
+    widget = _auto_label_widget(make_napari_viewer(), stack_path, identifier, templates)
     assert widget.auto_label() is not None, widget.last_error
     assert session_path.read_text() == newer
     assert widget.session.path == _widget.user_session_file(widget.session.image)
