@@ -1,5 +1,5 @@
-"""Docs-versus-behaviour audit: each test asserts a promise of docs/cli.md or the external
-contract ../shared/docs/neuron_table.md that the code does not keep (yet)."""
+"""Promises of docs/cli.md and the external contract ../shared/docs/neuron_table.md that an
+audit of the docs against the code (session 27) found broken, each kept since."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
-"""Review of `fdlc simulate / train / atlas / handedness / evaluate`: each test reproduces a defect
-found by hand and asserts the behaviour the project's rules ask for (one-line error and exit 2
-on bad input, never a traceback; no output lost or half-written; --resume resumes).
+"""`fdlc simulate / train / atlas / handedness / evaluate` on bad input and interrupted runs: one-line
+error and exit 2, never a traceback; no output lost or half-written; --resume resumes (each test
+came from a review, session 27, and says what used to happen).
 
 Everything runs on small synthetic corpora written under tmp_path (worms generated from the
 shipped atlas), so no test needs the NeuroPAL corpus.

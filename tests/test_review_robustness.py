@@ -1,4 +1,5 @@
-"""Defects found in napari_fdlc.review (sessions, autosave, set-aside files, export).
+"""napari_fdlc.review under damage and misuse (sessions, autosave, set-aside files, export); each
+test came from a review (session 27).
 
 Each test asserts the behaviour the project promises (docs/gui.md §5-6, review.py's docstrings):
 annotations are never lost, a bad session file is one FdlcError line, exports read back.
