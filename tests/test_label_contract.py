@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
-import pytest
 
 from napari_fdlc.cli import main
 from napari_fdlc.label import labelling_frame
