@@ -406,3 +406,15 @@ def test_a_new_run_from_a_checkpoints_configuration_does_not_replace_it(tmp_path
     assert run("train", "--config", out.with_suffix(".json"), "--corpus", fake_corpus, "--no-calibrate") == 2
     assert "--out" in _one_line_error(capsys)
     assert out.with_suffix(".safetensors").read_bytes() == before
+
+
+def test_handedness_of_a_flat_worm_is_refused(tmp_path, capsys):
+    """All named neurons in one z plane: `fdlc handedness` answered "same" with confidence,
+    though a flat worm and its mirror image are the same worm turned over."""
+    worm = generate_worm(seed=7)
+    xyz = worm.xyz.copy()
+    xyz[:, 2] = 5.0
+    path = tmp_path / "flat.csv"
+    write_table(NeuronTable(xyz, worm.colours, worm.labels), path)
+    assert run("handedness", path) == 2
+    assert "plane" in _one_line_error(capsys)
