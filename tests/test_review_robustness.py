@@ -249,3 +249,15 @@ def test_a_typed_name_with_a_line_break_gives_a_one_line_error():
     with pytest.raises(FdlcError) as exc:
         s.assign(1, "AV\nAL")
     assert "\n" not in str(exc.value)
+
+
+def test_a_name_the_machine_offers_can_be_accepted_as_written():
+    """A template whose names are written unusually ("AVA L", "RMD,L") gave names that
+    accept, pick_candidate and mark_unsure refused as "not a neuron name"."""
+    names = ["AVA L", "RMD,L", "SMDVL"]
+    probs = np.array([[0.8, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.1, 0.8]])
+    s = ReviewSession(_table(3), make_labelling(names, probs))
+    assert s.accept(0) and s.pick_candidate(1, 1) and s.mark_unsure(2)
+    assert s.final_names() == names
+    with pytest.raises(FdlcError):
+        s.assign(2, "SMD VR")  # typed by hand: still checked

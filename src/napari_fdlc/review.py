@@ -618,7 +618,10 @@ class ReviewSession:
         return True
 
     def _check_name(self, name: str, row: int) -> None:
-        if not _NAME_OK.match(name):
+        # A typed name must look like one; a name the machine offers (its vocabulary, e.g. a
+        # template's own names) is taken as it is written.
+        machine = set(self.vocabulary) | set(self._s.auto_id) | {c for row_cands in self._s.cand for c in row_cands}
+        if not _NAME_OK.match(name) and name not in machine:
             raise FdlcError(f"{name!r}: not a neuron name (letters, digits, '-', '_', '.', \"'\" only)")
         holder = self.user_names().get(name)
         if holder is not None and holder != row:
