@@ -261,3 +261,12 @@ def test_a_name_the_machine_offers_can_be_accepted_as_written():
     assert s.final_names() == names
     with pytest.raises(FdlcError):
         s.assign(2, "SMD VR")  # typed by hand: still checked
+
+
+def test_a_row_or_candidate_that_is_not_a_whole_number_is_refused():
+    """accept(1.7) acted on row 1, and pick_candidate(i, True) meant candidate 1."""
+    s = _session()
+    for call in (lambda: s.accept(1.7), lambda: s.accept(True), lambda: s.pick_candidate(0, True)):
+        with pytest.raises(FdlcError):
+            call()
+    assert s.history() == []

@@ -596,10 +596,9 @@ class ReviewSession:
 
     # ----- edits --------------------------------------------------------------------------------
     def _row(self, i) -> int:
-        try:
-            j = int(i)
-        except (TypeError, ValueError):
-            raise FdlcError(f"neuron {i!r}: give a row number") from None
+        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)):  # 1.7 is no row
+            raise FdlcError(f"neuron {i!r}: give a row number")
+        j = int(i)
         if not 0 <= j < len(self):
             raise FdlcError(f"neuron {j}: no such row (the layer has {len(self)} neurons, rows 0-{len(self) - 1})")
         return j
@@ -660,7 +659,7 @@ class ReviewSession:
     def pick_candidate(self, i: int, k: int) -> bool:
         """Give neuron ``i`` its k-th candidate (k = 1, 2, 3)."""
         i = self._row(i)
-        if not isinstance(k, (int, np.integer)) or not 1 <= int(k) <= K:
+        if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) or not 1 <= int(k) <= K:
             raise FdlcError(f"candidate {k!r}: give 1, 2 or 3")
         name = self._s.cand[i][int(k) - 1]
         if not name:
