@@ -53,6 +53,7 @@ from .table import NeuronTable
 
 Progress = Callable[[float, str], None]
 MAX_DIAMETER_UM = 20.0  # a nucleus diameter beyond this is not a nucleus (neurons' are 2-4 µm)
+MAX_THRESHOLD = 1000.0  # noise SDs: nuclei stand 10-100 SDs above the noise; beyond this, nothing
 FINE_SCALE = 0.8  # second detection scale, a fraction of the nucleus diameter (see detect_nuclei)
 # split_by_colour: a colour maximum between COLOUR_NEAR and FINE_SEPARATION diameters from a
 # detection (1.35-1.8 µm at 3 µm) is a nucleus of its own only where that colour is weaker than
@@ -72,18 +73,38 @@ def _report(progress: Progress | None, fraction: float, message: str) -> None:
         progress(float(fraction), message)
 
 
+def _narrow(values: np.ndarray) -> np.ndarray:
+    """Pixels that float32 holds as they are (8/16-bit, float32), or else (float64, 32/64-bit
+    integers: beyond float32's range, or a large offset it would round away) centred on their
+    median and scaled by their spread, as float32. The band-pass is linear and detection is in
+    noise SDs, so this moves no nucleus."""
+    values = np.asarray(values)
+    if values.dtype.itemsize <= 2 or values.dtype == np.float32:
+        return values
+    sub = values[:: max(1, values.shape[0] // 8), ::4, ::4].astype(np.float64)
+    lo, hi = np.percentile(sub, [50, 99.9])
+    spread = hi - lo if hi > lo else float(np.max(np.abs(sub - lo))) or 1.0
+    return ((values.astype(np.float64) - lo) / spread).astype(np.float32)
+
+
 def detection_image(stack: Stack) -> np.ndarray:
-    """The Z, Y, X float32 volume that nuclei are found on: W, else the scaled sum of channels."""
+    """The Z, Y, X float32 volume that nuclei are found on: W, else the scaled sum of the
+    channels with a role (of all channels when none has one), GFP left out."""
     w = stack.role_index("W")
     if w is not None:
-        return stack.channel(w).astype(np.float32, copy=False)
-    use = [i for i, r in enumerate(stack.channel_roles) if r not in ("GFP",)]
+        return _narrow(stack.channel(w)).astype(np.float32, copy=False)
+    roles = stack.channel_roles
+    use = [i for i, r in enumerate(roles) if r not in (None, "GFP")] or [i for i, r in enumerate(roles) if r != "GFP"]
     total = np.zeros(stack.shape_zyx, dtype=np.float32)
     for i in use:
-        ch = stack.channel(i).astype(np.float32, copy=False)
+        ch = _narrow(stack.channel(i)).astype(np.float32, copy=False)
         sub = ch[:: max(1, ch.shape[0] // 8), ::4, ::4]
         lo, hi = np.percentile(sub, [50, 99.9])
-        total += (ch - lo) / max(hi - lo, 1e-6)  # equal weight per channel whatever its gain
+        # Equal weight per channel whatever its gain; a channel dark but for a few spots (its
+        # 99.9th percentile at its median) is scaled by its brightest voxel instead.
+        spread = hi - lo if hi > lo else float(ch.max()) - lo
+        if spread > 0:
+            total += (ch - lo) / spread
     return total
 
 
@@ -94,8 +115,8 @@ def check_detection_options(diameter_um: float, threshold: float, names=("nucleu
     if not (0 < diameter_um <= MAX_DIAMETER_UM):
         raise ImageError(f"{names[0]} must be a number of µm above 0 and at most {MAX_DIAMETER_UM:g} "
                          f"(C. elegans neuron nuclei are 2-4 µm; got {diameter_um})")
-    if not (np.isfinite(threshold) and threshold > 0):
-        raise ImageError(f"{names[1]} must be a positive number of noise SDs (got {threshold})")
+    if not (np.isfinite(threshold) and 0 < threshold <= MAX_THRESHOLD):
+        raise ImageError(f"{names[1]} must be a positive number of noise SDs, at most {MAX_THRESHOLD:g} (got {threshold})")
 
 
 def _bin_factors(voxel_size_zyx, diameter_um: float) -> tuple[int, int, int]:
@@ -107,10 +128,13 @@ def _bin(volume: np.ndarray, factors) -> np.ndarray:
     """Mean of each block of ``factors`` voxels, as float32 (any input dtype; an edge that does
     not fill a block is dropped). Summed from strided views: 7x faster than a reshaped mean over
     every other axis, which numpy walks with poor locality."""
-    volume = np.asarray(volume)  # a lazy (dask) channel is read here
+    volume = _narrow(np.asarray(volume))  # a lazy (dask) channel is read here
     if all(f == 1 for f in factors):
         return volume.astype(np.float32, copy=False)
     shape = tuple(s // f for s, f in zip(volume.shape, factors))
+    if np.prod(factors) > 512:  # a block this large: one reshaped mean, not a Python loop per offset
+        block = volume[tuple(slice(0, n * f) for n, f in zip(shape, factors))].astype(np.float32)
+        return block.reshape(shape[0], factors[0], shape[1], factors[1], shape[2], factors[2]).mean(axis=(1, 3, 5))
     out = np.zeros(shape, dtype=np.float32)
     for offset in np.ndindex(*factors):
         out += volume[tuple(slice(o, n * f, f) for o, n, f in zip(offset, shape, factors))]
@@ -150,6 +174,8 @@ def detect_nuclei(
     """
     check_detection_options(diameter_um, threshold)
     vox = np.asarray(voxel_size_zyx, dtype=float)
+    if vox.shape != (3,) or not (np.isfinite(vox).all() and (vox > 0).all()):
+        raise ImageError(f"voxel size {tuple(voxel_size_zyx)} (z, y, x µm): give three positive numbers")
     if min_distance_um is None:
         min_distance_um = 0.3 * diameter_um
     _report(progress, 0.1, "band-pass filtering")
@@ -203,6 +229,10 @@ def _band_pass(volume: np.ndarray, vox: np.ndarray, diameter_um: float, sigma_fr
     """The difference-of-Gaussians response of ``volume`` binned in x/y (see detect_nuclei),
     its binning factors, and the median and noise SD of the response."""
     factors = np.asarray(_bin_factors(vox, diameter_um))
+    if any(n < f for n, f in zip(np.shape(volume), factors)):
+        extent = " × ".join(f"{n * v:.3g}" for n, v in zip(np.shape(volume), vox))
+        raise ImageError(f"the stack spans {extent} µm (z, y, x), less than a sixth of a {diameter_um:g} µm nucleus "
+                         f"along an axis: check the voxel size (µm per voxel: {', '.join(f'{v:g}' for v in vox)})")
     img = _bin(volume, factors)
     bvox = vox * factors
     # Truncate at 3 SD: the tails carry nothing at this scale and cost a third of the time.
@@ -211,6 +241,11 @@ def _band_pass(volume: np.ndarray, vox: np.ndarray, diameter_um: float, sigma_fr
     # Noise SD of the response: MAD over the lower half of the volume's values, where nuclei
     # (bright, positive response) do not dominate even in a dense head.
     sub = response[:: max(1, response.shape[0] // 16), ::2, ::2].ravel()
+    # A blank region (zero padding, voids read as the median) has no noise: left out, or the
+    # noise it shows would be none and noise elsewhere would pass for nuclei.
+    flat = np.abs(sub) <= 1e-5 * (float(np.max(np.abs(sub))) or 1.0)
+    if 0.05 < flat.mean() < 0.95:
+        sub = sub[~flat]
     med = float(np.median(sub))
     low = sub[sub <= med]
     noise = 1.4826 * np.median(med - low) if low.size else 0.0
@@ -358,7 +393,8 @@ def _sample(channel: np.ndarray, centres_vox: np.ndarray, offsets: np.ndarray, q
     pts = base[:, None, :] + offsets[None, :, :]
     for axis in range(3):
         np.clip(pts[..., axis], 0, channel.shape[axis] - 1, out=pts[..., axis])
-    values = channel[pts[..., 0], pts[..., 1], pts[..., 2]].astype(np.float32)
+    narrow = channel.dtype.itemsize <= 2 or channel.dtype == np.float32  # else float64: range, precision
+    values = channel[pts[..., 0], pts[..., 1], pts[..., 2]].astype(np.float32 if narrow else np.float64)
     return np.percentile(values, q, axis=1)
 
 
