@@ -190,3 +190,10 @@ def test_cli_segment_prints_no_python_warnings(tmp_path, small, options, data):
     assert all(line.startswith("fdlc:") for line in lines), result.stderr
     if result.returncode != 0:
         assert result.returncode == 2 and len(lines) == 1 and not out.exists(), result.stderr
+
+
+def test_a_stack_of_gfp_only_says_there_is_no_channel_for_nuclei(small):
+    """A GFP-only stack found nothing, and the message pointed at the voxel size and threshold."""
+    stack, _ = small
+    with pytest.raises(FdlcError, match="no channel to find nuclei in"):
+        segment_stack(Stack(stack.data[3:], VOX, ["GFP"]))

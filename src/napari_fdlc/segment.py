@@ -95,6 +95,9 @@ def detection_image(stack: Stack) -> np.ndarray:
         return _narrow(stack.channel(w)).astype(np.float32, copy=False)
     roles = stack.channel_roles
     use = [i for i, r in enumerate(roles) if r not in (None, "GFP")] or [i for i, r in enumerate(roles) if r != "GFP"]
+    if not use:
+        raise ImageError(f"{stack.source}: no channel to find nuclei in (GFP is activity, not nuclei); "
+                         "give the W (pan-neuronal) channel's role, or the colour channels'")
     total = np.zeros(stack.shape_zyx, dtype=np.float32)
     for i in use:
         ch = _narrow(stack.channel(i)).astype(np.float32, copy=False)
