@@ -363,7 +363,7 @@ class ReviewSession:
 
     def auto_shown(self) -> np.ndarray:
         """Rows whose automatic name is shown: no user decision, confidence >= threshold, and the
-        name not taken by a user decision elsewhere."""
+        name neither taken by a user decision elsewhere nor shown on a more confident row."""
         s = self._s
         taken = set(self.user_names())
         shown = np.array(
