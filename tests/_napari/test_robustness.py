@@ -347,7 +347,7 @@ def test_reopening_a_recording_restores_its_neuron_ids(make_napari_viewer, recor
     assert widget.session.path.is_file()
 
     again = make_napari_viewer()
-    layers = again.open(path, plugin="napari-fdlc")
+    again.open(path, plugin="napari-fdlc")
     _, widget2 = again.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
     names = [layer.name for layer in again.layers]
     assert widget2.session is not None and widget2.session.user_id[0] == "AVAL", names
