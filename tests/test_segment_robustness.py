@@ -197,3 +197,16 @@ def test_a_stack_of_gfp_only_says_there_is_no_channel_for_nuclei(small):
     stack, _ = small
     with pytest.raises(FdlcError, match="no channel to find nuclei in"):
         segment_stack(Stack(stack.data[3:], VOX, ["GFP"]))
+
+
+def test_colours_of_a_finely_sampled_stack_read_a_bounded_number_of_voxels(small):
+    """At 0.05 µm voxels the background shell around each nucleus held ~460 000 voxels (about
+    11 MB of offsets per neuron and channel: gigabytes for a head). It is now an even subset of
+    at most MAX_OFFSETS, and the same colours are read where the shell is smaller."""
+    from napari_fdlc.segment import MAX_OFFSETS, _ellipsoid_offsets
+
+    assert len(_ellipsoid_offsets(2.7, (0.05, 0.05, 0.05), inner_um=1.8)) == MAX_OFFSETS
+    assert len(_ellipsoid_offsets(2.7, VOX, inner_um=1.8)) < MAX_OFFSETS
+    stack, truth = small
+    colours = measure_colours(stack, truth.xyz)
+    assert all(np.isfinite(v).all() for v in colours.values())

@@ -54,6 +54,9 @@ from .table import NeuronTable
 Progress = Callable[[float, str], None]
 MAX_DIAMETER_UM = 20.0  # a nucleus diameter beyond this is not a nucleus (neurons' are 2-4 µm)
 MAX_THRESHOLD = 1000.0  # noise SDs: nuclei stand 10-100 SDs above the noise; beyond this, nothing
+# Voxels sampled around a nucleus for its colour, at most (a shell at 0.05 µm voxels holds
+# ~460 000: gigabytes for a head's neurons; NeuroPAL's voxel sizes take a few hundred).
+MAX_OFFSETS = 4096
 FINE_SCALE = 0.8  # second detection scale, a fraction of the nucleus diameter (see detect_nuclei)
 # split_by_colour: a colour maximum between COLOUR_NEAR and FINE_SEPARATION diameters from a
 # detection (1.35-1.8 µm at 3 µm) is a nucleus of its own only where that colour is weaker than
@@ -387,7 +390,10 @@ def _ellipsoid_offsets(radius_um: float, voxel_size_zyx, inner_um: float = 0.0) 
     keep = (dist <= radius_um + 1e-9) & (dist > inner_um)
     if not keep.any():
         keep = dist == dist.min()
-    return grid[keep]
+    offsets = grid[keep]
+    if len(offsets) > MAX_OFFSETS:  # fine voxels: an even subset reads the same percentile
+        offsets = offsets[np.linspace(0, len(offsets) - 1, MAX_OFFSETS).astype(int)]
+    return offsets
 
 
 def _sample(channel: np.ndarray, centres_vox: np.ndarray, offsets: np.ndarray, q: float) -> np.ndarray:
