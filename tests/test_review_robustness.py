@@ -17,7 +17,7 @@ import pytest
 
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.match import make_labelling
-from napari_fdlc.review import ReviewSession, carry_decisions, find_session, session_file_for, set_aside
+from napari_fdlc.review import Decision, ReviewSession, carry_decisions, find_session, session_file_for, set_aside
 from napari_fdlc.table import NeuronTable, read_table
 
 NAMES = ["AVAL", "AVAR", "RMDL", "RMDR", "SMDVL"]
@@ -270,3 +270,16 @@ def test_a_row_or_candidate_that_is_not_a_whole_number_is_refused():
         with pytest.raises(FdlcError):
             call()
     assert s.history() == []
+
+
+def test_one_name_decided_twice_keeps_one_decision(tmp_path, capsys):
+    """A hand-edited session file with one name decided for two neurons loaded both (the export
+    read back then lost both), and seeding decisions did not check the session's own."""
+    s = _session()
+    s.assign(0, "AVAL")
+    d = s.to_dict()
+    d["neurons"]["user_id"][2], d["neurons"]["status"][2], d["neurons"]["user_conf"][2] = "AVAL", "corrected", 1.0
+    loaded = ReviewSession.load(_write_session(tmp_path, d))
+    assert loaded.user_id.count("AVAL") == 1 and "decided for neurons 0 and 2" in capsys.readouterr().err
+    s.seed_decisions({3: Decision("AVAL", 1.0, "corrected")})
+    assert s.user_id.count("AVAL") == 1

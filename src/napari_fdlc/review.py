@@ -552,6 +552,11 @@ class ReviewSession:
         lengths |= {len(nd[f"cand_{k + 1}"]) for k in range(K)}
         if bad or lengths != {n}:
             raise FdlcError(f"{source}: damaged session file (inconsistent neuron rows)")
+        holder: dict[str, int] = {}
+        for i, (name, st) in enumerate(zip(s.user_id, s.status)):  # a hand-edited file: one neuron per name
+            if st != "auto" and name and holder.setdefault(name, i) != i:
+                warn(f"{source}: {name} decided for neurons {holder[name]} and {i}: kept on {holder[name]} only")
+                s.user_id[i], s.user_conf[i], s.status[i] = "", np.nan, "auto"
         return session
 
     @classmethod
@@ -711,7 +716,8 @@ class ReviewSession:
         of an earlier session or of a table read back from our CSV. Names held twice are
         dropped with a warning."""
         s = self._s
-        seen: dict[str, int] = {}
+        # the session's own decisions elsewhere hold their names too
+        seen: dict[str, int] = {name: row for row, name in enumerate(s.user_id) if name and row not in decisions}
         for i, d in sorted(decisions.items()):
             i = self._row(i)
             if not d.name or d.status not in STATUSES or d.status == "auto":
