@@ -238,9 +238,9 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
         raise TableError(f"{name}: the file has no header row") from None
     except pd.errors.ParserError as exc:
         raise TableError(f"{name}: not a valid CSV file ({str(exc).splitlines()[0]})") from None
-    lines = _record_lines(text, skiprows)
-    if len(lines) == len(df):
-        df.attrs["lines"] = lines  # for messages: blank lines and quoted line breaks shift rows
+    # Kept for messages only (the file's own line of a bad cell: blank lines and quoted line
+    # breaks shift the rows), and read again only then.
+    df.attrs["csv"] = (text, skiprows)
     return df
 
 
@@ -264,7 +264,8 @@ def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, a
     if bad.any():
         row = int(np.argmax(bad))
         shown = raw.iloc[row] or "an empty cell"
-        line = df.attrs["lines"][row] if "lines" in df.attrs else row + first_line
+        lines = _record_lines(*df.attrs["csv"]) if "csv" in df.attrs else []
+        line = lines[row] if len(lines) == len(df) else row + first_line
         raise TableError(f"{name}: line {line}, column '{column}': {shown!s} is not a finite number")
     return values
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from .colour import IDENTITY_CHANNELS, normal_scores
 from .corpus import LABS, Worm, load_corpus
-from .errors import FdlcError, atomic_write
+from .errors import FdlcError, ModelError, atomic_write
 from .evaluate import Scores, mirrored_relative_to
 from .geometry import N_PROPER, ORIENTATIONS, apply_affine, canonical_frame, fit_affine, fit_warp, true_orientation
 from .reference import atlas_worm, build_atlas
@@ -507,7 +507,6 @@ def _load_start(model, path: str, resume: bool, log) -> tuple[int, list, float]:
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    from .errors import ModelError
     from .model import model_files
 
     weights, config_path = model_files(path)
