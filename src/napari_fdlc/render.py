@@ -2,8 +2,8 @@
 
 What makes them realistic enough to tune a detector on:
 
-- nuclei are ellipsoids of varied size and orientation, never interpenetrating (a radius is capped
-  by the distance to the nearest neighbour), imaged through an anisotropic Gaussian PSF (the z
+- nuclei are ellipsoids of varied size and orientation that barely overlap (a radius is capped
+  by the distance to the nearest neighbour, before the axes are stretched), imaged through an anisotropic Gaussian PSF (the z
   blur of a confocal is ~4x the lateral one);
 - the pan-neuronal W channel (TagRFP-T) shows every nucleus with log-normal brightness; R, G, B
   come from the table's colours (z-scores or raw values, mapped to positive intensities);
@@ -42,6 +42,11 @@ BLEED = np.array([
     [0.05, 0.10, 0.00, 1.00],
 ])
 # Relative colour of gut autofluorescence per detected channel (strong in blue/green).
+# Photon counts far beyond what a uint16 camera records are a mistake (and overflow the draws).
+MAX_PHOTONS = 1e6
+# A stack of more voxels is a mistake (positions not in µm, a shape in the wrong unit): 2 GB of
+# float32 photons per channel.
+MAX_VOXELS = 5e8
 GUT_COLOUR = {"R": 0.12, "G": 0.45, "B": 0.6, "W": 0.15, "GFP": 0.5}
 
 
@@ -75,7 +80,10 @@ def colour_intensities(values: np.ndarray) -> np.ndarray:
     the ratios between neurons survive; the floor keeps "off" channels at a realistic faint level.
     """
     v = np.asarray(values, dtype=float)
-    lo, hi = np.nanpercentile(v, 2), np.nanpercentile(v, 98)
+    if not np.isfinite(v).any():
+        return np.full(v.shape, 0.5)
+    v = np.where(np.isfinite(v), v, np.nanmedian(np.where(np.isfinite(v), v, np.nan)))  # no reading: the median, as read_table
+    lo, hi = np.percentile(v, 2), np.percentile(v, 98)
     if not np.isfinite(hi - lo) or hi - lo <= 0:
         return np.full(v.shape, 0.5)
     return 0.05 + 0.95 * np.clip((v - lo) / (hi - lo), 0.0, 1.25)
@@ -87,7 +95,7 @@ def align_worm(xyz: np.ndarray) -> np.ndarray:
     Real stacks image a head lying on its side with the long axis in the image plane.
     """
     centred = xyz - xyz.mean(axis=0)
-    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    _, _, vt = np.linalg.svd(centred, full_matrices=len(centred) < 3)  # vt 3 x 3 for 1 or 2 neurons too
     if np.linalg.det(vt) < 0:
         vt[2] *= -1
     return centred @ vt.T
@@ -117,10 +125,12 @@ def render_stack(
     shape, brightness, GFP activity; drawn from ``identity_seed``) the same in every stack
     rendered with it: the volumes of one recording. The noise comes from ``seed``.
     """
-    p = RenderParams(**{**(params.__dict__ if params else {}), **overrides})
+    p = _checked(RenderParams(**{**(params.__dict__ if params else {}), **overrides}))
     rng = np.random.default_rng(seed)
     if len(table) == 0:
         raise ImageError("render: the neuron table is empty")
+    if not np.isfinite(table.xyz).all():
+        raise ImageError("render: the neuron table has positions that are not finite numbers")
     vz, vy, vx = p.voxel_size_zyx
     vox = np.array([vz, vy, vx])
     xyz = align_worm(table.xyz) if align else table.xyz - table.xyz.mean(axis=0)
@@ -132,17 +142,28 @@ def render_stack(
         shape = np.maximum(np.ceil(extent / vox).astype(int) + 1, 3)
     else:
         shape = np.asarray(shape_zyx, dtype=int)
+        if shape.shape != (3,) or (shape < 1).any() or shape.prod() > MAX_VOXELS:
+            raise ImageError(f"render: shape_zyx must be 3 positive sizes of at most {MAX_VOXELS:.0e} voxels in all, "
+                             f"not {tuple(shape_zyx)}")
+    if shape.prod() > MAX_VOXELS:
+        raise ImageError(f"render: the neurons span {tuple(int(v) for v in shape)} voxels, more than {MAX_VOXELS:.0e}: "
+                         "are the positions in µm?")
     centre_um = (shape - 1) * vox / 2
     zyx = zyx - (zyx.max(axis=0) + zyx.min(axis=0)) / 2 + centre_um
     n = len(zyx)
 
+    properties = iter(range(100))  # each property's own stream of identity_seed
+
     def per_neuron(draw):
         """A property per neuron, ``draw(generator, count)``: from ``rng``, or the same for the
-        same ``identity`` in every call (neurons without one get their own)."""
+        same ``identity`` in every call (neurons without one get their own). With ``identity``
+        each property has its own stream, and ``draw`` must make one call of the generator (its
+        first values then do not depend on how many identities there are)."""
+        stream = next(properties)
         if identity is None:
             return draw(rng, n)
         ids = np.asarray(identity, dtype=int)
-        fixed = draw(np.random.default_rng(identity_seed), int(ids.max(initial=0)) + 1)[np.maximum(ids, 0)]
+        fixed = draw(np.random.default_rng([identity_seed, stream]), int(ids.max(initial=0)) + 1)[np.maximum(ids, 0)]
         return np.where((ids >= 0).reshape((n,) + (1,) * (fixed.ndim - 1)), fixed, draw(rng, n))
 
     # Nucleus geometry: radius capped by the nearest neighbour so nuclei touch but never overlap.
@@ -164,14 +185,13 @@ def render_stack(
         if c in table.colours:
             colour_int[c] = colour_intensities(table.colours[c])
         else:  # NeuroPAL-like: each colour channel clearly on or off in a neuron
-            colour_int[c] = per_neuron(
-                lambda g, m: np.where(g.random(m) < 0.55, g.uniform(0.3, 1.0, m), g.uniform(0.03, 0.1, m)))
+            colour_int[c] = per_neuron(lambda g, m: _on_or_off(g.random((m, 3)), 0.55, (0.3, 1.0), (0.03, 0.1)))
     amps = np.stack([colour_int["R"], colour_int["G"], colour_int["B"], w_bright], axis=1)
     mix = np.eye(4) + p.bleed * (BLEED - np.eye(4))
     amps_detected = amps @ mix.T  # bleed-through happens per fluorophore, before noise
     channels = list(CHANNELS)
     if gfp:
-        activity = per_neuron(lambda g, m: np.where(g.random(m) < 0.3, g.uniform(0.3, 1.0, m), g.uniform(0.0, 0.05, m)))
+        activity = per_neuron(lambda g, m: _on_or_off(g.random((m, 3)), 0.3, (0.3, 1.0), (0.0, 0.05)))
         amps_detected = np.concatenate([amps_detected, activity[:, None]], axis=1)
         channels.append("GFP")
     n_ch = len(channels)
@@ -272,6 +292,30 @@ def spread_apart(xyz: np.ndarray, min_spacing_um: float, iterations: int = 20) -
     return xyz
 
 
+def _on_or_off(u: np.ndarray, p_on: float, on: tuple[float, float], off: tuple[float, float]) -> np.ndarray:
+    """Per row of uniforms ``u`` (m, 3): on (with probability ``p_on``) or off, and a level
+    uniform in that state's range. One draw of the generator per property (see per_neuron)."""
+    return np.where(u[:, 0] < p_on, on[0] + (on[1] - on[0]) * u[:, 1], off[0] + (off[1] - off[0]) * u[:, 2])
+
+
+def _checked(p: RenderParams) -> RenderParams:
+    """``p``, or an ImageError naming the first setting that cannot be rendered."""
+    for name, value in vars(p).items():
+        if isinstance(value, bool):  # gut
+            continue
+        try:
+            numbers = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            numbers = np.array(np.nan)
+        if not np.isfinite(numbers).all() or (numbers < 0).any():
+            raise ImageError(f"render: {name} must be finite numbers of 0 or more, not {value!r}")
+    if min(p.voxel_size_zyx) <= 0 or p.nucleus_radius_um <= 0:
+        raise ImageError("render: the voxel size and the nucleus radius must be above 0")
+    if not 0 < p.peak_photons <= MAX_PHOTONS:
+        raise ImageError(f"render: peak_photons must be above 0 and at most {MAX_PHOTONS:.0e}, not {p.peak_photons}")
+    return p
+
+
 def _zscore(v: np.ndarray) -> np.ndarray:
     v = np.asarray(v, dtype=float)
     sd = v.std()
@@ -297,7 +341,8 @@ def _nucleus_profile(centre, semi, angle, psf, vox, shape):
     u_x = -sa * dy + ca * dx
     dist = np.sqrt(dz * dz + u_y * u_y + u_x * u_x)
     safe = np.maximum(dist, 1e-6)
-    r = 1.0 / np.sqrt((dz / safe / semi[0]) ** 2 + (u_y / safe / semi[1]) ** 2 + (u_x / safe / semi[2]) ** 2)
+    with np.errstate(divide="ignore"):  # a voxel at the very centre (1 / 0): replaced below
+        r = 1.0 / np.sqrt((dz / safe / semi[0]) ** 2 + (u_y / safe / semi[1]) ** 2 + (u_x / safe / semi[2]) ** 2)
     # The PSF is axis-aligned (optical axis z), so its width along u uses the unrotated offsets.
     s = np.sqrt((dz / safe * psf[0]) ** 2 + (dy / safe * psf[1]) ** 2 + (dx / safe * psf[2]) ** 2)
     s = np.maximum(s, 0.05)

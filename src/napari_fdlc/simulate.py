@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from .errors import TableError
 from .geometry import canonical_frame
 from .table import NeuronTable
 
@@ -81,6 +82,9 @@ def simulate_worm(
     other: NeuronTable | None = None,
 ) -> SyntheticWorm:
     """One synthetic worm made from ``table``; names and colours travel with their neurons."""
+    if len(table) == 0 or not np.isfinite(table.xyz).all():
+        raise TableError("simulate: the neuron table " + ("is empty" if len(table) == 0 else
+                                                        "has positions that are not finite numbers"))
     rng = np.random.default_rng(rng)
     p = params or SimulationParams()
     canon, centre, rotation = canonical_frame(table.xyz)

@@ -164,20 +164,38 @@ def _voxel_from_columns(table) -> tuple | None:
 # ----- writer ---------------------------------------------------------------------------------
 
 
+def _per_axis(values, dims: int, missing: float) -> np.ndarray:
+    """A layer attribute (scale, translate) for the last ``dims`` axes, ``missing`` where absent."""
+    v = np.asarray(values if values is not None else [], dtype=float).ravel()[-dims:]
+    return np.concatenate([np.full(dims - len(v), missing), v])
+
+
 def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     """npe2 writer: a Points layer as a neuron-ID CSV (``x_um, y_um, z_um`` in the world frame,
-    the layer's features, and ``x_px, y_px, z_px`` voxel coordinates when the layer is scaled)."""
+    the layer's features, and ``x_px, y_px, z_px`` voxel coordinates when the layer is scaled).
+    Points of a (t, z, y, x) layer at several time points get a ``t`` column (a sequence table,
+    as ``fdlc track`` reads), unless a ``t`` feature already says their time."""
     from ..table import COLOUR_CHANNELS, write_table
 
     data = np.asarray(data, dtype=float)
     if data.ndim != 2 or data.shape[1] < 3:
         raise FdlcError(f"{path}: neuron tables need 3D points (z, y, x)")
-    data = data[:, -3:]
-    scale = np.asarray(attributes.get("scale", (1, 1, 1)), dtype=float)[-3:]
-    translate = np.asarray(attributes.get("translate", (0, 0, 0)), dtype=float)[-3:]
+    if len(data) == 0:
+        raise FdlcError(f"{path}: the layer has no points to save")
+    dims = data.shape[1]
+    scale = _per_axis(attributes.get("scale"), dims, 1.0)
+    translate = _per_axis(attributes.get("translate"), dims, 0.0)
     world = data * scale + translate
-    df = pd.DataFrame({"x_um": world[:, 2], "y_um": world[:, 1], "z_um": world[:, 0]})
+    varying = [k for k in range(dims - 3) if np.ptp(world[:, k]) > 0]
     feats = attributes.get("features")
+    has_t = feats is not None and "t" in pd.DataFrame(feats).columns
+    if varying and (len(varying) > 1 or varying[0] != dims - 4) and not has_t:
+        raise FdlcError(f"{path}: the points vary along {len(varying)} axes besides z, y, x; "
+                        "a neuron table holds one volume, or volumes over time (t, z, y, x)")
+    df = pd.DataFrame({"x_um": world[:, -1], "y_um": world[:, -2], "z_um": world[:, -3]})
+    if varying and not has_t:
+        df["t"] = world[:, -4]
+    data = data[:, -3:]
     feats = pd.DataFrame(feats) if feats is not None else pd.DataFrame(index=range(len(df)))
     feats = feats.reset_index(drop=True)
     for c in [c for c in COLOUR_CHANNELS if c in feats.columns] + ["label"]:
@@ -185,12 +203,15 @@ def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     for c in feats.columns:
         if c not in df.columns and c not in ("neuron", "shown", "x_px", "y_px", "z_px"):
             df[c] = feats[c].to_numpy()
-    if not np.allclose(scale, 1.0) or not np.allclose(translate, 0.0):
+    if not np.allclose(scale[-3:], 1.0) or not np.allclose(translate[-3:], 0.0):
         df["x_px"], df["y_px"], df["z_px"] = data[:, 2], data[:, 1], data[:, 0]
     path = str(path)
     if not path.lower().endswith(".csv"):
         path += ".csv"
-    write_table(df, path)
+    try:
+        write_table(df, path)
+    except OSError as exc:
+        raise FdlcError(f"{path}: cannot be written ({exc.strerror or exc})") from None
     return [path]
 
 

@@ -267,7 +267,7 @@ def _mask_centre(entry) -> np.ndarray:
     arr = np.asarray([tuple(r)[:4] for r in rows], dtype=float)
     if arr.ndim != 2 or arr.shape[0] == 0:
         return np.full(3, np.nan)
-    if arr.shape[1] >= 4 and np.all(arr[:, 3] > 0) and arr.shape[0] > 1:
+    if arr.shape[1] >= 4 and arr.shape[0] > 1 and np.all(arr[:, 3] >= 0) and arr[:, 3].sum() > 0:
         return np.average(arr[:, :3], axis=0, weights=arr[:, 3])
     return arr[:, :3].mean(axis=0)
 
@@ -309,7 +309,7 @@ def read_nwb_neurons(path: str | os.PathLike, colours: bool = True) -> NeuronTab
             labels = [_text(col[i]) for i in range(n)]
     if not np.isfinite(centres).all():
         raise ImageError(f"{source}: some NWB neurons have an empty voxel_mask")
-    z, y, x = voxel
+    z, y, x = images._check_voxel_size(voxel, source)
     xyz = centres * np.array([x, y, z])
     parsed = [parse_name(s) for s in labels]
     table = NeuronTable(
@@ -346,8 +346,18 @@ def write_nwb(
     from pynwb.ophys import ImageSegmentation, OpticalChannel
 
     data = np.asarray(stack.data)
-    names = list(channel_names or stack.channel_names or [r or f"channel {i}" for i, r in enumerate(stack.channel_roles)])
+    if data.ndim != 4:
+        raise ImageError(f"NWB: one volume (C, Z, Y, X) is written per file, not an array of {data.ndim} axes "
+                         "(a recording: write each time point to its own file)")
     z, y, x = stack.voxel_size_zyx
+    if neurons is not None:
+        vox = neurons.xyz / np.array([x, y, z])
+        if not np.isfinite(vox).all():
+            raise ImageError("NWB: some neuron positions are not finite numbers")
+        if (np.round(vox) < 0).any():
+            raise ImageError("NWB: some neurons lie before the image's first voxel (negative x, y or z); "
+                             "voxel masks hold voxels of the image")
+    names = list(channel_names or stack.channel_names or [r or f"channel {i}" for i, r in enumerate(stack.channel_roles)])
     nwb = NWBFile(
         session_description=session_description,
         identifier=str(uuid.uuid4()),
@@ -355,7 +365,8 @@ def write_nwb(
     )
     device = nwb.create_device(name="Microscope")
     optical = [
-        OpticalChannel(name=f"{i:02d} {n}", description=str(stack.channel_roles[i] or ""), emission_lambda=np.nan)
+        # NWB names cannot hold '/' or ':'; the names themselves are in order_optical_channels.
+        OpticalChannel(name=f"{i:02d} {n}".replace("/", "_").replace(":", "_"), description=str(stack.channel_roles[i] or ""), emission_lambda=np.nan)
         for i, n in enumerate(names)
     ]
     plane = nwb.create_imaging_plane(
@@ -376,7 +387,6 @@ def write_nwb(
         module.add(seg)
         ps = seg.create_plane_segmentation(name=NEURONS_NAME, description="neuron centres", imaging_plane=plane)
         ps.add_column(name="ID_labels", description="neuron names ('?' = unsure)")
-        vox = neurons.xyz / np.array([x, y, z])
         for (vx, vy, vz), label in zip(vox, neurons.label_strings()):
             # voxel_mask holds integer voxels in the core spec: centres are rounded to the grid.
             ps.add_roi(voxel_mask=[(int(round(vx)), int(round(vy)), int(round(vz)), 1.0)], ID_labels=label)
