@@ -240,6 +240,15 @@ def test_export_to_a_path_ending_in_a_separator_is_refused(tmp_path):
     assert not (tmp_path / "results").is_file()
 
 
+def test_export_onto_the_sessions_own_file_is_refused(tmp_path):
+    path = tmp_path / "worm.tif.fdlc-session.json"
+    s = _session(path=path)
+    s.assign(0, "AVAL")  # autosaved
+    with pytest.raises(FdlcError, match="autosaves"):
+        s.export(path, overwrite=True)
+    assert ReviewSession.load(path).user_id[0] == "AVAL"  # the session file is intact
+
+
 # ---------------------------------------------------------------------------------------------
 # 8. One line per error.
 

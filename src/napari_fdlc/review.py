@@ -865,6 +865,9 @@ class ReviewSession:
         if str(path).endswith(("/", os.sep)) or Path(path).is_dir():
             raise FdlcError(f"{path}: is a folder; give a file name")
         path = Path(path)
+        if self.path is not None and path.resolve() == self.path.resolve():
+            # the next edit's autosave would replace the export (and the session would be gone until then)
+            raise FdlcError(f"{path}: is where this session autosaves; choose another name")
         if path.exists() and not overwrite:
             raise FdlcError(f"{path}: already exists; choose another name or allow overwriting")
         try:
