@@ -39,10 +39,17 @@ def normal_scores(table: NeuronTable, channels: tuple[str, ...]) -> np.ndarray:
 def _normal_scores(raw: bytes, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
     values = np.frombuffer(raw, dtype=dtype).reshape(shape)
     n = shape[0]
+    known = np.isfinite(values)
     if n == 0 or shape[1] == 0:
         scores = np.zeros(shape)
-    else:
+    elif known.all():
         scores = ndtri((_average_ranks(values) - 0.5) / n)
+    else:  # a cell without a reading says nothing: the median's score, 0 (read_table fills the median too)
+        scores = np.zeros(shape)
+        for c in range(shape[1]):
+            rows = known[:, c]
+            if rows.any():
+                scores[rows, c] = ndtri((_average_ranks(values[rows, c : c + 1])[:, 0] - 0.5) / rows.sum())
     scores.setflags(write=False)
     return scores
 

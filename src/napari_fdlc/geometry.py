@@ -216,10 +216,11 @@ def _grid_centres(xyz: np.ndarray, cell: float) -> np.ndarray:
     """The mean position of the points in each occupied cube of side ``cell`` (in the order of
     the cubes' index)."""
     index = np.floor((xyz - xyz.min(axis=0)) / cell).astype(np.int64)
-    key = (index[:, 0] * (index[:, 1].max() + 1) + index[:, 1]) * (index[:, 2].max() + 1) + index[:, 2]
-    counts = np.bincount(key)
-    occupied = np.flatnonzero(counts)
-    return np.column_stack([np.bincount(key, weights=xyz[:, d])[occupied] for d in range(3)]) / counts[occupied, None]
+    # by the occupied cubes only: positions in nm would make a grid of ~1e12 cubes
+    _, cube = np.unique(index, axis=0, return_inverse=True)
+    cube = cube.ravel()
+    counts = np.bincount(cube)
+    return np.column_stack([np.bincount(cube, weights=xyz[:, d]) for d in range(3)]) / counts[:, None]
 
 
 def position_evidence(placed: np.ndarray, ref_xyz: np.ndarray, sigma: float) -> np.ndarray:

@@ -33,7 +33,7 @@ from ._blas import one_blas_thread
 from .errors import FdlcError, ModelError, warn
 from .geometry import (CHIRALITIES, apply_affine, canonical_frame, compose_affine, fit_affine, fit_warp,
                        mirrored_by_names, position_evidence)
-from .match import Labelling, assign_log, make_labelling, name_probabilities
+from .match import Labelling, assign_log, check_fixed, make_labelling, name_probabilities
 from .register import (HEAD_WINDOW, Placement, body_reach, head_window, posterior, register, smaller_worm_factor,
                        template_mixture)
 from .table import NeuronTable
@@ -197,7 +197,7 @@ class Identifier:
         self.settings = settings or InferenceSettings()
         self._traced: dict = {}  # see _model_pass; shared with copies made by with_settings
         self._mean_worm: tuple = (None, None)  # (atlas, its mean worm) for _atlas_worm_answer
-        self._template_handedness: tuple = (None, None, None)  # (atlas, template, mirrored) for _atlas_placement
+        self._template_handedness: tuple = (None, None, None)  # (atlas, template's positions and names, mirrored): _atlas_placement
 
     @classmethod
     def load(cls, path: str | Path | None = None, device: str | None = None) -> "Identifier":
@@ -558,6 +558,9 @@ class Identifier:
         answers. ``fixed`` applies to every test (give it with one test). With an ``atlas``, a
         test that spreads along the body further than a head and than every template is named
         in its head window only (:func:`napari_fdlc.register.head_window`), as the panel does."""
+        for test in tests:
+            self._check(test, templates, use_colour)
+            check_fixed(fixed, len(test))
         windows = [None] * len(tests)
         if atlas is not None:
             mixture = atlas.mixture()
@@ -567,7 +570,7 @@ class Identifier:
             return self._label_many(tests, templates, use_colour, atlas, fixed)
         return [self._label_many([test], templates, use_colour, atlas, fixed)[0] if w is None else
                 _widened(self._label_many([test.subset(w)], templates, use_colour, atlas, _fixed_in(fixed, w))[0], w,
-                         len(test), fixed)
+                         len(test), fixed, self.settings.no_match_weight)
                 for test, w in zip(tests, windows)]
 
     def _label_many(self, tests: list[NeuronTable], templates: list[NeuronTable], use_colour: bool,
@@ -690,9 +693,11 @@ class Identifier:
         the test's relative to the template, the test's (None when the template shares fewer
         than 4 names with the atlas)."""
         # The template's handedness relative to the atlas, once per template (2 ms a time)
+        # (by the template's content: a table changed in place is another template)
         cached_atlas, cached_template, _ = self._template_handedness
-        if cached_atlas is not atlas or cached_template is not template:
-            self._template_handedness = (atlas, template, mirrored_by_names(atlas.names, atlas.mean, template, min_names=4))
+        key = (template.xyz.tobytes(), tuple(template.label_strings()))
+        if cached_atlas is not atlas or cached_template != key:
+            self._template_handedness = (atlas, key, mirrored_by_names(atlas.names, atlas.mean, template, min_names=4))
         template_mirrored = self._template_handedness[2]
         if template_mirrored is None:
             return None
@@ -733,12 +738,13 @@ class Identifier:
         A test that shows much of the body beyond the head is named in its head only
         (:func:`napari_fdlc.register.head_window`); the rest get no name."""
         use_colour = self._check(test, panel.templates, use_colour)
+        check_fixed(fixed, len(test))
         window = head_window(test, panel.atlas.mixture(), use_colour)
         if window is None:
             result = self._label_panel(test, panel, use_colour, fixed)
         else:
             result = _widened(self._label_panel(test.subset(window), panel, use_colour, _fixed_in(fixed, window)), window,
-                              len(test), fixed)
+                              len(test), fixed, self.settings.no_match_weight)
         taken_up = smaller_worm_factor(test.xyz)
         if taken_up > 1.0:  # registered as a smaller worm (napari_fdlc.register.YOUNG_ADULT_SPACING_UM)
             result.info["smaller_worm"] = taken_up
@@ -848,7 +854,9 @@ class Identifier:
         for i, r in enumerate(results):
             if decided and r.info["mirrored"] != (decided == "mirrored"):
                 results[i] = self.with_chirality(decided).label_panel(tests[i], panel, use_colour)
-            results[i].info["batch_handedness"] = {"decided": decided, "lean_mirrored": k, "votes": n, "tests": len(tests)}
+            # a new Labelling: the caller's own answers (``first``) are left as they were
+            results[i] = replace(results[i], info={**results[i].info, "batch_handedness": {
+                "decided": decided, "lean_mirrored": k, "votes": n, "tests": len(tests)}})
         return results
 
     def _check(self, test: NeuronTable, templates: list[NeuronTable], use_colour: bool) -> bool:
@@ -857,8 +865,12 @@ class Identifier:
             raise ModelError("no model loaded")
         if not templates:
             raise FdlcError("no template given")
-        if not any(t.names for t in templates):
-            raise FdlcError("no template has a named neuron: a template needs names to give them")
+        if not all(t.names for t in templates):
+            raise FdlcError("a template without named neurons: a template needs names to give them")
+        if len(test) == 0:
+            raise FdlcError(f"{test.source or 'the test'}: no neurons to name")
+        if not all(np.isfinite(t.xyz).all() for t in (test, *templates)):
+            raise FdlcError("a neuron position is not a finite number")
         return use_colour and any(colour_model.shared_channels(t, test) for t in templates)
 
 
@@ -927,9 +939,17 @@ def _fixed_in(fixed: dict[int, str] | None, rows: np.ndarray) -> dict[int, str] 
     return inside or None
 
 
-def _widened(part: Labelling, rows: np.ndarray, n: int, fixed: dict[int, str] | None) -> Labelling:
+def _widened(part: Labelling, rows: np.ndarray, n: int, fixed: dict[int, str] | None,
+             no_match_weight: float) -> Labelling:
     """``part``, the answer for ``rows`` of a test of ``n`` neurons, as the answer for the whole
-    test: the other neurons get no name (certainly no named match), or the name the user fixed."""
+    test: the other neurons get no name (certainly no named match), or the name the user fixed.
+    A name fixed outside ``rows`` is taken from the neurons inside (assigned again without it)."""
+    outside = {name for row, name in (fixed or {}).items() if row not in set(rows.tolist())}
+    taken = [i for i, name in enumerate(part.names) if name in outside]
+    if taken:
+        probs = part.probs.copy()
+        probs[:, taken] = 0.0
+        part = make_labelling(part.names, probs, _fixed_in(fixed, rows), part.info, no_match_weight)
     probs = np.zeros((n, len(part.names)))
     probs[rows] = part.probs
     auto_id, auto_conf = [""] * n, np.ones(n)

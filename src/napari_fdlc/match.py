@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from .errors import FdlcError
+
 _TINY = 1e-12
 
 
@@ -68,8 +70,8 @@ def assign(probs: np.ndarray, fixed: dict[int, int] | None = None, no_match_weig
     """One name index per test neuron (-1 = no named match), maximising the summed
     log-probability, each name used at most once.
 
-    ``fixed`` maps test rows to name columns the user decided; those are kept and their names
-    are taken out of play for everyone else. ``no_match_weight`` < 1 makes leaving a neuron
+    ``fixed`` maps test rows to name columns the user decided (-1: a name without a column,
+    which takes none); those are kept and their names are taken out of play for everyone else. ``no_match_weight`` < 1 makes leaving a neuron
     unnamed less attractive than its probability alone says: a diffuse but useful best guess
     (shown with its low confidence) is worth more to a user than an empty cell.
     """
@@ -137,9 +139,10 @@ def one_to_one(probs: np.ndarray, fixed: dict[int, int] | None = None, iteration
     if p.size == 0:
         return p
     for row, col in (fixed or {}).items():
-        p[:, col] = 0.0
-        p[row] = 0.0
-        p[row, col] = 1.0
+        p[row] = 0.0  # a name without a column (col -1): certainly none of the others
+        if col >= 0:
+            p[:, col] = 0.0
+            p[row, col] = 1.0
     rest = np.clip(1.0 - p.sum(axis=1), 1e-9, None)
     for _ in range(iterations):
         p /= np.maximum(p.sum(axis=0), 1.0)
@@ -147,6 +150,19 @@ def one_to_one(probs: np.ndarray, fixed: dict[int, int] | None = None, iteration
         p /= total[:, None]
         rest /= total
     return p
+
+
+def check_fixed(fixed: dict | None, n: int) -> dict[int, str]:
+    """The user's decided names by row (``fixed``), checked against a test of ``n`` neurons:
+    rows are whole numbers 0..n-1, and a name belongs to one neuron."""
+    rows_of = {}
+    for row, name in (fixed or {}).items():
+        if isinstance(row, (bool, np.bool_)) or not isinstance(row, (int, np.integer)) or not 0 <= row < n:
+            raise FdlcError(f"decided name {name!r}: {row!r} is not a row of the test (0 to {n - 1})")
+        if name in rows_of:
+            raise FdlcError(f"decided name {name!r} is on rows {rows_of[name]} and {row}: a name belongs to one neuron")
+        rows_of[name] = int(row)
+    return {row: name for name, row in rows_of.items()}
 
 
 def make_labelling(
@@ -164,8 +180,8 @@ def make_labelling(
     The probabilities reported (candidates, ``auto_conf``) are :func:`one_to_one`'s; a fixed
     row keeps the model's own probability of the user's name as its ``auto_conf``."""
     column = {n: i for i, n in enumerate(names)}
-    fixed = fixed or {}
-    fixed_cols = {row: column[name] for row, name in fixed.items() if name in column}
+    fixed = check_fixed(fixed, len(probs))
+    fixed_cols = {row: column.get(name, -1) for row, name in fixed.items()}
     choice = assign(probs if assign_probs is None else assign_probs, fixed_cols, no_match_weight)
     model_probs, probs = probs, one_to_one(probs, fixed_cols)
     auto_id, auto_conf = [], np.zeros(len(probs))

@@ -296,7 +296,8 @@ def make_panel(atlas: Atlas, samples: int = PANEL_SAMPLES, seed: int = PANEL_SEE
 
 def load_panel(path: str | Path | None = None) -> Panel:
     """The built-in reference panel: templates generated from the shipped atlas."""
-    key = str(path)
+    file = Path(path) if path else shipped_atlas_path()
+    key = (str(file), file.stat().st_mtime_ns if file.exists() else None)  # an atlas saved again is read again
     if key not in _PANEL:
         _PANEL[key] = make_panel(load_atlas(path))
     return _PANEL[key]

@@ -439,6 +439,9 @@ def track(
     if len(seq) == 0:
         raise FdlcError("the sequence has no volume")
     tables = list(references) if references else [seq.volumes[0]]
+    if any(len(t) == 0 for t in tables):
+        raise FdlcError("a reference volume has no neurons" if references else
+                        "the first volume has no neurons: give a reference volume that has (--reference-t)")
     if method == "cpd":
         return _track_cpd(seq, tables, s, progress)
     if method == "geometry":
@@ -592,8 +595,12 @@ def simulate_sequence(
     these time points (training needs three of a recording)."""
     from .simulate import _spurious_points
 
-    rng = np.random.default_rng(rng)
     p = params or SequenceParams()
+    if p.frames < 1:
+        raise FdlcError(f"a recording needs 1 frame or more, not {p.frames}")
+    if only is not None and not all(0 <= t < p.frames for t in only):
+        raise FdlcError(f"time points {sorted(only)}: a recording of {p.frames} frames has 0 to {p.frames - 1}")
+    rng = np.random.default_rng(rng)
     canon, centre, rotation = canonical_frame(table.xyz)
     T = p.frames
     kappa = p.bend_curvature * _smooth(rng, T, p.bend_period)
