@@ -212,15 +212,21 @@ def fit_warp(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, sigma: float
     return Warp(affine, centres, coef, sigma)
 
 
+GRID_CUBES = 1e6  # above it _grid_centres counts occupied cubes only
+
+
 def _grid_centres(xyz: np.ndarray, cell: float) -> np.ndarray:
     """The mean position of the points in each occupied cube of side ``cell`` (in the order of
     the cubes' index)."""
     index = np.floor((xyz - xyz.min(axis=0)) / cell).astype(np.int64)
-    # by the occupied cubes only: positions in nm would make a grid of ~1e12 cubes
-    _, cube = np.unique(index, axis=0, return_inverse=True)
-    cube = cube.ravel()
+    size = index.max(axis=0) + 1
+    if np.prod(size.astype(float)) <= GRID_CUBES:  # one count per cube of the grid (5x faster than unique)
+        cube = (index[:, 0] * size[1] + index[:, 1]) * size[2] + index[:, 2]
+    else:  # positions in nm, say: ~1e12 cubes; count the occupied ones only (the same order)
+        cube = np.unique(index, axis=0, return_inverse=True)[1].ravel()
     counts = np.bincount(cube)
-    return np.column_stack([np.bincount(cube, weights=xyz[:, d]) for d in range(3)]) / counts[:, None]
+    occupied = np.flatnonzero(counts)
+    return np.column_stack([np.bincount(cube, weights=xyz[:, d])[occupied] for d in range(3)]) / counts[occupied, None]
 
 
 def position_evidence(placed: np.ndarray, ref_xyz: np.ndarray, sigma: float) -> np.ndarray:
