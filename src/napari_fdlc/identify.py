@@ -944,7 +944,8 @@ def _widened(part: Labelling, rows: np.ndarray, n: int, fixed: dict[int, str] | 
     """``part``, the answer for ``rows`` of a test of ``n`` neurons, as the answer for the whole
     test: the other neurons get no name (certainly no named match), or the name the user fixed.
     A name fixed outside ``rows`` is taken from the neurons inside (assigned again without it)."""
-    outside = {name for row, name in (fixed or {}).items() if row not in set(rows.tolist())}
+    inside = set(rows.tolist())
+    outside = {name for row, name in (fixed or {}).items() if row not in inside}
     taken = [i for i, name in enumerate(part.names) if name in outside]
     if taken:
         probs = part.probs.copy()
@@ -955,7 +956,6 @@ def _widened(part: Labelling, rows: np.ndarray, n: int, fixed: dict[int, str] | 
     auto_id, auto_conf = [""] * n, np.ones(n)
     for k, row in enumerate(rows):
         auto_id[row], auto_conf[row] = part.auto_id[k], part.auto_conf[k]
-    inside = set(rows.tolist())
     for row, name in (fixed or {}).items():
         if row not in inside:
             auto_id[row], auto_conf[row] = name, 0.0

@@ -71,9 +71,10 @@ def assign(probs: np.ndarray, fixed: dict[int, int] | None = None, no_match_weig
     log-probability, each name used at most once.
 
     ``fixed`` maps test rows to name columns the user decided (-1: a name without a column,
-    which takes none); those are kept and their names are taken out of play for everyone else. ``no_match_weight`` < 1 makes leaving a neuron
-    unnamed less attractive than its probability alone says: a diffuse but useful best guess
-    (shown with its low confidence) is worth more to a user than an empty cell.
+    which takes none); those are kept and their names are taken out of play for everyone else.
+    ``no_match_weight`` < 1 makes leaving a neuron unnamed less attractive than its probability
+    alone says: a diffuse but useful best guess (shown with its low confidence) is worth more
+    to a user than an empty cell.
     """
     n, v = probs.shape
     result = np.full(n, -1, dtype=int)

@@ -3,8 +3,8 @@
 What makes them realistic enough to tune a detector on:
 
 - nuclei are ellipsoids of varied size and orientation that barely overlap (a radius is capped
-  by the distance to the nearest neighbour, before the axes are stretched), imaged through an anisotropic Gaussian PSF (the z
-  blur of a confocal is ~4x the lateral one);
+  by the distance to the nearest neighbour, before the axes are stretched), imaged through an
+  anisotropic Gaussian PSF (the z blur of a confocal is ~4x the lateral one);
 - the pan-neuronal W channel (TagRFP-T) shows every nucleus with log-normal brightness; R, G, B
   come from the table's colours (z-scores or raw values, mapped to positive intensities);
 - a camera offset, background with a slow gradient, a faint haze over the worm body, gut-like
@@ -17,6 +17,7 @@ under a second; the cost is dominated by the Poisson draw over the whole volume.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -41,12 +42,12 @@ BLEED = np.array([
     [0.00, 0.00, 1.00, 0.00],
     [0.05, 0.10, 0.00, 1.00],
 ])
-# Relative colour of gut autofluorescence per detected channel (strong in blue/green).
 # Photon counts far beyond what a uint16 camera records are a mistake (and overflow the draws).
 MAX_PHOTONS = 1e6
 # A stack of more voxels is a mistake (positions not in µm, a shape in the wrong unit): 2 GB of
 # float32 photons per channel.
 MAX_VOXELS = 5e8
+# Relative colour of gut autofluorescence per detected channel (strong in blue/green).
 GUT_COLOUR = {"R": 0.12, "G": 0.45, "B": 0.6, "W": 0.15, "GFP": 0.5}
 
 
@@ -80,9 +81,10 @@ def colour_intensities(values: np.ndarray) -> np.ndarray:
     the ratios between neurons survive; the floor keeps "off" channels at a realistic faint level.
     """
     v = np.asarray(values, dtype=float)
-    if not np.isfinite(v).any():
+    finite = np.isfinite(v)
+    if not finite.any():
         return np.full(v.shape, 0.5)
-    v = np.where(np.isfinite(v), v, np.nanmedian(np.where(np.isfinite(v), v, np.nan)))  # no reading: the median, as read_table
+    v = np.where(finite, v, np.median(v[finite]))  # a cell without a reading: the median, as read_table fills
     lo, hi = np.percentile(v, 2), np.percentile(v, 98)
     if not np.isfinite(hi - lo) or hi - lo <= 0:
         return np.full(v.shape, 0.5)
@@ -152,7 +154,7 @@ def render_stack(
     zyx = zyx - (zyx.max(axis=0) + zyx.min(axis=0)) / 2 + centre_um
     n = len(zyx)
 
-    properties = iter(range(100))  # each property's own stream of identity_seed
+    properties = itertools.count()  # each property's own stream of identity_seed
 
     def per_neuron(draw):
         """A property per neuron, ``draw(generator, count)``: from ``rng``, or the same for the

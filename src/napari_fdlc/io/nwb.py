@@ -366,7 +366,8 @@ def write_nwb(
     device = nwb.create_device(name="Microscope")
     optical = [
         # NWB names cannot hold '/' or ':'; the names themselves are in order_optical_channels.
-        OpticalChannel(name=f"{i:02d} {n}".replace("/", "_").replace(":", "_"), description=str(stack.channel_roles[i] or ""), emission_lambda=np.nan)
+        OpticalChannel(name=f"{i:02d} {n}".replace("/", "_").replace(":", "_"),
+                       description=str(stack.channel_roles[i] or ""), emission_lambda=np.nan)
         for i, n in enumerate(names)
     ]
     plane = nwb.create_imaging_plane(
