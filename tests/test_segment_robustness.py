@@ -63,13 +63,51 @@ def test_noise_with_a_blank_region_gives_almost_nothing():
     of a pure-noise volume: the noise SD was estimated from the lower half of the response,
     most of which was then the blank region's exact zero, so it collapsed and noise passed as
     nuclei (423). Like the whole noise volume (test_segment.test_pure_noise_gives_almost_nothing),
-    it gives <= 1. (A margin padded with zeros instead still gives detections along its edge: a
-    step from the background to 0 is a ridge to a band-pass; not handled.)"""
+    it gives <= 1."""
     rng = np.random.default_rng(0)
     data = (100 + rng.poisson(30, (1, 16, 96, 96))).astype(np.float32)
     data[..., 58:] = np.nan
     found = segment_stack(Stack(data, VOX, ["W"]))
     assert len(found) <= 1, f"{len(found)} nuclei found in noise"
+
+
+def test_noise_beside_a_margin_of_zeros_gives_almost_nothing():
+    """A margin padded with zeros (a stack registered or cropped by another tool): the step from
+    the background down to 0 is a ridge to a band-pass, which gave 49 nuclei along it."""
+    rng = np.random.default_rng(0)
+    data = (100 + rng.poisson(30, (1, 16, 96, 96))).astype(np.float32)
+    data[..., 58:] = 0
+    found = segment_stack(Stack(data, VOX, ["W"]))
+    assert len(found) <= 1, f"{len(found)} nuclei found in noise"
+
+
+@pytest.mark.parametrize("axis", ["x", "z"])
+def test_a_stack_padded_with_zeros_gives_the_nuclei_it_gives_unpadded(small, axis):
+    """Zero padding along x (20 voxels) or z (3 blank planes): the same nuclei, shifted by the
+    padding (it gave one false nucleus for every few voxels of the step's edge)."""
+    stack, _ = small
+    data = np.asarray(stack.data)
+    pad_shape = list(data.shape)
+    if axis == "x":
+        pad_shape[3] = 20
+        padded, shift = np.concatenate([np.zeros(pad_shape, data.dtype), data], axis=3), [20 * VOX[2], 0, 0]
+    else:
+        pad_shape[1] = 3
+        padded, shift = np.concatenate([data, np.zeros(pad_shape, data.dtype)], axis=1), [0, 0, 0]
+    plain = segment_stack(stack)
+    found = segment_stack(Stack(padded, stack.voxel_size_zyx, stack.channel_roles))
+    assert len(found) == len(plain)
+    np.testing.assert_allclose(np.sort(found.xyz - shift, axis=0), np.sort(plain.xyz, axis=0), atol=0.05)
+
+
+def test_a_background_subtracted_stack_keeps_its_nuclei(small):
+    """Clipped at 0 after subtracting the background, most of the stack is 0: the blank
+    region's fill (_fill_blank) must not take the nuclei's contrast."""
+    stack, truth = small
+    data = np.asarray(stack.data).astype(np.int32)
+    clipped = np.clip(data - np.percentile(data, 80, axis=(1, 2, 3), keepdims=True), 0, None).astype(np.uint16)
+    found = segment_stack(Stack(clipped, stack.voxel_size_zyx, stack.channel_roles))
+    assert score_detections(truth.xyz, found.xyz)["f1"] >= score_detections(truth.xyz, segment_stack(stack).xyz)["f1"] - 0.02
 
 
 # ----- voxel sizes ---------------------------------------------------------------------------------
