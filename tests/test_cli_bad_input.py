@@ -156,6 +156,16 @@ def test_a_nan_threshold_is_refused_as_such(tmp_path, small_stack, capsys):
     assert "--threshold" in line and "no nuclei" not in line, line
 
 
+def test_a_threshold_inside_the_noise_is_refused(tmp_path, small_stack, capsys):
+    """--threshold 0.5 (noise SDs) made every noise maximum a nucleus: 16508 on the sample, in
+    84 s, a table no one can use."""
+    path = tmp_path / "worm.ome.tif"
+    write_tiff(path, small_stack)
+    assert run("segment", path, "--threshold", "0.5", "--out", tmp_path / "neurons.csv") == 2
+    assert "noise" in one_line(capsys)
+    assert not (tmp_path / "neurons.csv").exists()
+
+
 @pytest.mark.parametrize("extra", [["--reference-t", "abc"], ["--method", "cpd", "--reference-t", "0", "--reference-t", "1"]],
                          ids=["non-numeric-reference-t", "cpd-with-two-references"])
 def test_track_recording_options_are_checked_before_segmenting(tmp_path, recording, capsys, extra):
