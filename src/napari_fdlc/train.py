@@ -71,6 +71,10 @@ class TrainConfig:
     colour_noise: float = 0.0
     max_neurons: int = 112  # crop bigger worms to a window along the body axis (CPU cost ~ N^2)
     seed: int = 0
+    # Which worms of each training lab are held out (and which validation pairs are drawn): the
+    # same for every stage of a recipe whatever its example seed, so that a stage warm-started
+    # from another validates and calibrates on worms neither trained on.
+    split_seed: int = 0
     eval_every: int = 250
     val_pairs_per_lab: int = 24
     time_limit_min: float | None = None
@@ -112,6 +116,8 @@ class TrainConfig:
             raise FdlcError(f"--workers must be 0 or more (got {self.workers})")
         if not 0 <= self.seed < 2**32:
             raise FdlcError(f"--seed must be a whole number from 0 to 2**32 - 1 (got {self.seed})")
+        if not 0 <= self.split_seed < 2**32:
+            raise FdlcError(f"split_seed must be a whole number from 0 to 2**32 - 1 (got {self.split_seed})")
         if self.time_limit_min is not None and not self.time_limit_min > 0:
             raise FdlcError(f"--minutes must be a positive number (got {self.time_limit_min})")
         if self.device:
@@ -221,8 +227,10 @@ def _targets(template: NeuronTable, test: NeuronTable) -> np.ndarray:
     for j, name in enumerate(test.labels):
         if name in index:
             target[j] = index[name]
-        elif name and template_complete:
-            target[j] = m  # a named neuron the (fully named) template does not have
+        elif name and template_complete and not (name + "L" in index or name + "R" in index):
+            # a named neuron the (fully named) template does not have; a name written without
+            # its side (a few SF worms' "AIB") has its partner there, which one unknown
+            target[j] = m
     return target
 
 
@@ -410,8 +418,9 @@ def training_batches(worms: list[Worm], cfg: TrainConfig, atlas, rng, first_step
 
 
 def split_worms(worms: list[Worm], cfg: TrainConfig, rng) -> tuple[list[Worm], dict[str, list[Worm]]]:
-    """Training worms from the training labs; validation worms per lab (held-out labs whole,
-    a few worms of each training lab)."""
+    """Training worms from the training labs; validation worms per lab: held-out labs whole; of
+    each training lab, its ``val_worms_per_lab`` held-out worms first, then 4 of its training
+    worms (templates for them, never named: :func:`validation_pairs`)."""
     train, val = [], {}
     for lab in sorted({w.lab for w in worms}):
         lab_worms = [w for w in worms if w.lab == lab]
@@ -491,10 +500,23 @@ def _validate_tracking(follower, sequences: dict[str, list]) -> dict[str, dict[s
     return out
 
 
-def validation_pairs(val: dict[str, list[Worm]], per_lab: int, rng) -> dict[str, list]:
+def held_out(worms: list[Worm], cfg: TrainConfig) -> tuple[list[Worm], dict[str, list[Worm]], dict[str, list]]:
+    """The training worms, the validation worms per lab and the validation pairs
+    (:func:`split_worms`, :func:`validation_pairs`), drawn from ``cfg.split_seed``."""
+    train, val = split_worms(worms, cfg, np.random.default_rng(cfg.split_seed))
+    trained = {id(w) for w in train}
+    unseen = {lab: sum(id(w) not in trained for w in lab_worms) for lab, lab_worms in val.items()}
+    return train, val, validation_pairs(val, cfg.val_pairs_per_lab, np.random.default_rng(cfg.split_seed + 1), unseen)
+
+
+def validation_pairs(val: dict[str, list[Worm]], per_lab: int, rng, unseen: dict[str, int] | None = None) -> dict[str, list]:
+    """Up to ``per_lab`` (template, test) pairs per lab. ``unseen``: per lab, how many of its
+    validation worms (the first ones, as :func:`split_worms` lists them) training never saw;
+    only those are tests, the others serve as templates (default: every worm is unseen)."""
     out = {}
     for lab, worms in val.items():
-        pairs = [(a.table, b.table) for a in worms for b in worms if a is not b]
+        tests = {id(w) for w in worms[: (unseen or {}).get(lab, len(worms))]}
+        pairs = [(a.table, b.table) for a in worms for b in worms if a is not b and id(b) in tests]
         idx = rng.permutation(len(pairs))[:per_lab]
         out[lab] = [pairs[i] for i in idx]
     return out
@@ -561,8 +583,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
     device = cfg.device or ("cuda" if torch.cuda.is_available() else "cpu")
     worms = load_corpus(cfg.corpus)
     _check_labs(cfg, {w.lab for w in worms})
-    train_worms, val_worms = split_worms(worms, cfg, rng)
-    val_pairs = validation_pairs(val_worms, cfg.val_pairs_per_lab, np.random.default_rng(cfg.seed + 1))
+    train_worms, val_worms, val_pairs = held_out(worms, cfg)
     recordings = tracking_sequences(val_worms, cfg) if cfg.task == "track" else None
     atlas = build_atlas(train_worms) if cfg.panel_fraction > 0 else None
     own_pairs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
@@ -652,8 +673,7 @@ def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, log=pr
     start = time.time()
     corpus = load_corpus(cfg.corpus)
     if val_pairs is None:
-        _, val_worms = split_worms(corpus, cfg, np.random.default_rng(cfg.seed))
-        val_pairs = validation_pairs(val_worms, cfg.val_pairs_per_lab, np.random.default_rng(cfg.seed + 1))
+        val_pairs = held_out(corpus, cfg)[2]
     _, config_path = model_files(cfg.out)
     own_labs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
     settings = calibrate(Identifier.load(cfg.out, cfg.device), own_labs, log,
@@ -694,7 +714,7 @@ def _panel_tests(corpus: list[Worm], val_pairs: dict[str, list], train_labs) -> 
     out = {}
     for lab, pairs in val_pairs.items():
         others = [w for w in corpus if w.lab in train_labs and w.lab != lab]
-        tests = list({id(t): t for pair in pairs for t in pair}.values())
+        tests = list({id(t): t for _, t in pairs}.values())  # the worms named: held out of training
         if others and tests:
             out[lab] = (make_panel(build_atlas(others)), tests)
     return out
