@@ -577,7 +577,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
     from .model import CorrespondenceModel, matching_loss, model_files, save_model
 
     torch.manual_seed(cfg.seed)
-    rng = np.random.default_rng(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)  # the stream of training examples (the split has split_seed)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     device = cfg.device or ("cuda" if torch.cuda.is_available() else "cpu")
