@@ -187,6 +187,19 @@ def test_write_nwb_with_a_neuron_left_of_the_image(tmp_path, stack):
     np.testing.assert_allclose(got.xyz, neurons.xyz, atol=0.76)
 
 
+def test_write_nwb_to_an_unwritable_place_names_the_target(tmp_path, stack):
+    """An OSError named the hidden temporary file (.worm.1a2b3c4d.tmp.nwb) or came as a bare
+    FileExistsError from mkdir; the error should be one FdlcError line naming the target."""
+    from napari_fdlc.io.nwb import write_nwb
+
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    target = blocker / "sub" / "worm.nwb"
+    with pytest.raises(FdlcError) as exc:
+        write_nwb(target, stack)
+    assert str(target) in one_line(exc) and ".tmp" not in str(exc.value)
+
+
 def test_write_nwb_refuses_a_recording(tmp_path, stack):
     """A StackSeries (T, C, Z, Y, X) fails in transpose with 'ValueError: axes don't match
     array'; an NWB file here holds one volume, so say so in one line."""

@@ -26,7 +26,7 @@ from __future__ import annotations
 import os
 import uuid
 import warnings
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Sequence
@@ -394,10 +394,10 @@ def write_nwb(
     roles = stack.channel_roles
     rgbw = [roles.index(r) for r in _RGBW if r in roles]
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     # pynwb needs a path, not a handle: write beside the target, then rename (atomic).
     tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:8]}.tmp.nwb")
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         with NWBHDF5IO(str(tmp), "w") as io:
             io.write(nwb)
         with h5py.File(tmp, "a") as f:
@@ -406,6 +406,9 @@ def write_nwb(
             group = f[f"general/optophysiology/{VOLUME_NAME}"].create_group("order_optical_channels")
             group.create_dataset("channels", data=np.asarray(names, dtype=object), dtype=h5py.string_dtype())
         os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
+    except BaseException as exc:
+        with suppress(OSError):  # (a folder that cannot be made has no temporary file either)
+            tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):  # named by the target, not the hidden temporary file
+            raise ImageError(f"{path}: cannot be written ({exc.strerror or _first_line(exc)})") from None
         raise
