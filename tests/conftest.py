@@ -50,6 +50,26 @@ def corpus_path():
     return path
 
 
+def _write_corpus(root, tables: dict[str, list[NeuronTable]]):
+    """``tables`` ({lab: [worm tables]}) written under ``root`` as a corpus (one CSV per worm
+    and worms.csv), to read as corpus.load_corpus reads ../shared's."""
+    root.mkdir(parents=True, exist_ok=True)
+    rows = ["dataset,dandiset,worm,n_neurons,n_labeled"]
+    for lab, worms in tables.items():
+        (root / lab).mkdir(exist_ok=True)
+        for i, table in enumerate(worms):
+            write_table(table, root / lab / f"w{i}.csv")
+            rows.append(f"{lab},0,w{i},{len(table)},{int(table.named.sum())}")
+    (root / "worms.csv").write_text("\n".join(rows) + "\n")
+    return root
+
+
+@pytest.fixture(scope="session")
+def write_corpus():
+    """:func:`_write_corpus`, for tests that train or evaluate on a small corpus of their own."""
+    return _write_corpus
+
+
 def random_table(n: int, seed: int = 0, named: bool = True) -> NeuronTable:
     rng = np.random.default_rng(seed)
     xyz = rng.normal(0, 1, (n, 3)) * [40, 8, 6] + [60, 30, 15]

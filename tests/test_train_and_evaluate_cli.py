@@ -35,23 +35,11 @@ def _one_line_error(capsys) -> str:
     return err[0]
 
 
-def _write_corpus(root: Path, tables: dict[str, list[NeuronTable]]) -> Path:
-    root.mkdir(parents=True, exist_ok=True)
-    rows = ["dataset,dandiset,worm,n_neurons,n_labeled"]
-    for lab, worms in tables.items():
-        (root / lab).mkdir(exist_ok=True)
-        for i, table in enumerate(worms):
-            write_table(table, root / lab / f"w{i}.csv")
-            rows.append(f"{lab},0,w{i},{len(table)},{int(table.named.sum())}")
-    (root / "worms.csv").write_text("\n".join(rows) + "\n")
-    return root
-
-
 @pytest.fixture(scope="module")
-def fake_corpus(tmp_path_factory) -> Path:
+def fake_corpus(tmp_path_factory, write_corpus) -> Path:
     """Two labs of three generated (fully named) worms, laid out like the NeuroPAL corpus."""
     worms = {lab: [generate_worm(seed=100 + 3 * k + i) for i in range(3)] for k, lab in enumerate(("NP", "EY"))}
-    return _write_corpus(tmp_path_factory.mktemp("corpus"), worms)
+    return write_corpus(tmp_path_factory.mktemp("corpus"), worms)
 
 
 @pytest.fixture
@@ -88,7 +76,7 @@ def test_atlas_refuses_a_malformed_worms_csv_in_one_line(tmp_path, capsys, case,
 
 
 @pytest.mark.parametrize("case", ["unnamed", "three_neurons"])
-def test_atlas_of_worms_it_cannot_use_is_one_line(tmp_path, capsys, case):
+def test_atlas_of_worms_it_cannot_use_is_one_line(tmp_path, capsys, case, write_corpus):
     """A corpus whose worms carry no names (or too few to align: 3 neurons each) gave
     `IndexError: too many indices for array` from Atlas.to_frame."""
     if case == "unnamed":
@@ -96,7 +84,7 @@ def test_atlas_of_worms_it_cannot_use_is_one_line(tmp_path, capsys, case):
     else:
         worms = [NeuronTable(np.array([[1.0, 2, 3], [5, 6, 7], [9, 1, 2]]), labels=np.array(["AVAL", "AVAR", "AIYL"], object))
                  for _ in range(3)]
-    corpus = _write_corpus(tmp_path / "corpus", {"NP": worms})
+    corpus = write_corpus(tmp_path / "corpus", {"NP": worms})
     out = tmp_path / "atlas.csv"
     assert run("atlas", "--corpus", corpus, "--out", out) == 2
     _one_line_error(capsys)
@@ -167,12 +155,12 @@ def test_train_refuses_an_unknown_device_in_one_line(tmp_path, fake_corpus, tiny
     _one_line_error(capsys)
 
 
-def test_train_on_a_corpus_without_a_usable_pair_stops_with_one_line(tmp_path):
+def test_train_on_a_corpus_without_a_usable_pair_stops_with_one_line(tmp_path, write_corpus):
     """Worms of 3 named neurons each: no example has the 4 matches make_example needs, and
     sample_example's `while True` draws forever: `fdlc train` hung (killed after 40 s by hand).
     It should refuse quickly."""
     worm = NeuronTable(np.array([[1.0, 2, 3], [5, 6, 7], [9, 1, 2]]), labels=np.array(["AVAL", "AVAR", "AIYL"], object))
-    corpus = _write_corpus(tmp_path / "corpus", {"NP": [worm] * 3, "EY": [worm] * 3})
+    corpus = write_corpus(tmp_path / "corpus", {"NP": [worm] * 3, "EY": [worm] * 3})
     config = tmp_path / "tiny.json"
     config.write_text(json.dumps(TINY))
     cmd = [sys.executable, "-m", "napari_fdlc.cli", "train", "--config", str(config), "--corpus", str(corpus),
@@ -351,11 +339,11 @@ def test_evaluate_out_onto_a_folder_writes_nothing_and_names_the_output(tmp_path
     assert not (tmp_path / "images").exists()
 
 
-def test_evaluate_on_worms_too_small_for_an_atlas_is_one_line(tmp_path, untrained_weights, capsys):
+def test_evaluate_on_worms_too_small_for_an_atlas_is_one_line(tmp_path, untrained_weights, capsys, write_corpus):
     """Worms of 3 neurons: `IndexError: too many indices for array` from the atlas built per
     lab (reference.build_atlas with no name kept)."""
     worm = NeuronTable(np.array([[1.0, 2, 3], [5, 6, 7], [9, 1, 2]]), labels=np.array(["AVAL", "AVAR", "AIYL"], object))
-    corpus = _write_corpus(tmp_path / "corpus", {"NP": [worm] * 3, "EY": [worm] * 3})
+    corpus = write_corpus(tmp_path / "corpus", {"NP": [worm] * 3, "EY": [worm] * 3})
     assert run("evaluate", "--corpus", corpus, "--labs", "NP", "--pairs-per-lab", "1", "--panel-worms-per-lab", "1",
                "--synthetic-pairs", "0", "--no-cpd", "--weights", untrained_weights, "--out", tmp_path / "a.md") == 2
     _one_line_error(capsys)

@@ -10,7 +10,6 @@ import pytest
 
 from napari_fdlc.corpus import Worm
 from napari_fdlc.reference import generate_worm
-from napari_fdlc.table import write_table
 from napari_fdlc.train import TrainConfig, held_out
 
 
@@ -91,7 +90,7 @@ def _split_seen_by_train(monkeypatch, cfg):
     return seen["split"]
 
 
-def test_a_warm_started_stage_validates_on_worms_its_start_never_trained_on(tmp_path, monkeypatch):
+def test_a_warm_started_stage_validates_on_worms_its_start_never_trained_on(tmp_path, monkeypatch, write_corpus):
     """The split of held-out worms is drawn from ``default_rng(cfg.seed)``, the seed of the
     example stream. The shipped recipe warm-starts stage 4 (seed 1) from stage 3 (seed 0):
     on the corpus 9 of the 10 worms stage 4 and 5 hold out (checkpoint choice, calibration)
@@ -100,15 +99,7 @@ def test_a_warm_started_stage_validates_on_worms_its_start_never_trained_on(tmp_
     or the one recorded with the checkpoint)."""
     from napari_fdlc.model import CorrespondenceModel, save_model
 
-    tables = {lab: [w.table for w in _worms((lab,), 6)] for lab in ("NP", "EY")}
-    root = tmp_path / "corpus"
-    rows = ["dataset,dandiset,worm,n_neurons,n_labeled"]
-    for lab, ts in tables.items():
-        (root / lab).mkdir(parents=True)
-        for i, t in enumerate(ts):
-            write_table(t, root / lab / f"w{i}.csv")
-            rows.append(f"{lab},0,w{i},{len(t)},{int(t.named.sum())}")
-    (root / "worms.csv").write_text("\n".join(rows) + "\n")
+    root = write_corpus(tmp_path / "corpus", {lab: [w.table for w in _worms((lab,), 6)] for lab in ("NP", "EY")})
 
     base = dict(corpus=str(root), train_labs=("NP", "EY"), val_labs=("NP", "EY"), val_worms_per_lab=2,
                 model={"layers": 1, "dim": 16}, steps=2, calibrate=False)
