@@ -144,3 +144,14 @@ def test_assign_log_is_assign_on_log_probabilities():
     log_p[3, :-1] = -800.0  # a row certain of "no match": costs are clipped alike
     for weight in (0.2, 1.0):
         assert np.array_equal(assign_log(log_p, weight), assign(np.exp(log_p[:, :-1]), None, weight))
+
+
+def test_fixed_name_unknown_to_the_vocabulary_does_not_take_another_name():
+    """A name the user gave that the vocabulary lacks is kept on its row, and that row takes no
+    vocabulary name behind the scenes: 'A' stays free for row 1, and row 0's auto_conf is the
+    probability of 'Z' (0), not of 'A'."""
+    probs = np.array([[0.9, 0.05], [0.8, 0.15]])
+    result = make_labelling(["A", "B"], probs, fixed={0: "Z"})
+    assert result.auto_id[0] == "Z"
+    assert result.auto_id[1] == "A", result.auto_id
+    assert result.auto_conf[0] == 0.0, result.auto_conf

@@ -102,3 +102,16 @@ def test_an_atlas_takes_the_colours_recordings_give_a_name_often_enough():
     unchanged[k_often] = False
     assert np.array_equal(adapted.colour[unchanged], atlas.colour[unchanged]) and k_rarely in np.flatnonzero(unchanged)
     assert np.array_equal(adapted.mean, atlas.mean) and np.array_equal(adapted.sd, atlas.sd)
+
+
+def test_load_panel_sees_an_atlas_rebuilt_at_the_same_path(tmp_path):
+    """load_panel's cache is keyed on the atlas file's modification time too: an atlas rebuilt
+    at the same path in one session is seen, not the old panel."""
+    from napari_fdlc.corpus import Worm
+
+    worms = [Worm("L", f"w{i}", generate_worm(seed=i)) for i in range(6)]
+    path = tmp_path / "atlas.csv"
+    build_atlas(worms[:3]).save(path)
+    load_panel(path)
+    build_atlas(worms[3:]).save(path)
+    assert list(load_panel(path).atlas.names) == list(load_atlas(path).names)

@@ -10,6 +10,15 @@ from napari_fdlc.errors import FdlcError
 from napari_fdlc.render import align_worm, colour_intensities, random_worm, render_stack, spread_apart
 from napari_fdlc.table import NeuronTable
 
+# Small, coarse stacks: a few thousand voxels each.
+SMALL = dict(margin_um=(2.0, 3.0, 3.0), voxel_size_zyx=(1.0, 0.5, 0.5), gut=False)
+
+
+def one_line(exc_info) -> str:
+    message = str(exc_info.value)
+    assert message and "\n" not in message, message
+    return message
+
 
 @pytest.fixture(scope="module")
 def worm():
@@ -123,3 +132,81 @@ def test_random_colours_when_the_table_has_none(worm):
 def test_empty_table_is_refused():
     with pytest.raises(FdlcError):
         render_stack(NeuronTable(np.zeros((0, 3))))
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_render_a_table_of_one_or_two_neurons(n):
+    """Tables of one or two neurons render (the alignment's SVD has fewer than 3 rows for them)."""
+    table = NeuronTable([[1.0, 2.0, 3.0], [6.0, 2.5, 3.0]][:n], {"R": [300.0, 900.0][:n]})
+    stack, truth = render_stack(table, **SMALL)
+    assert len(truth) == n
+    assert stack.data.shape[0] == 4
+    if n == 2:
+        assert np.linalg.norm(truth.xyz[0] - truth.xyz[1]) == pytest.approx(np.linalg.norm([5.0, 0.5, 0.0]))
+
+
+@pytest.mark.parametrize("what", ["nan_position", "inf_position"])
+def test_render_refuses_non_finite_positions(what):
+    """NaN or infinite positions are refused in one line."""
+    worm = random_worm(8, size_um=(16, 8, 6), seed=1)
+    xyz = worm.xyz.copy()
+    xyz[1, 0] = np.nan if what == "nan_position" else np.inf
+    with pytest.raises(FdlcError) as exc:
+        render_stack(NeuronTable(xyz, worm.colours), **SMALL)
+    one_line(exc)
+
+
+def test_render_with_a_missing_colour_value():
+    """A NaN colour (a neuron without a reading) renders as the channel's median, as
+    read_table reads it, or is refused in one line; never a failed Poisson draw."""
+    worm = random_worm(8, size_um=(16, 8, 6), seed=1)
+    colours = {c: v.copy() for c, v in worm.colours.items()}
+    colours["R"][2] = np.nan
+    try:
+        stack, truth = render_stack(NeuronTable(worm.xyz, colours), **SMALL)
+    except FdlcError as exc:
+        assert "\n" not in str(exc)
+        return
+    assert np.isfinite(truth.extra["R_int"].to_numpy(dtype=float)).all()
+    assert stack.data.max() > 0
+
+
+@pytest.mark.parametrize("overrides", [
+    {"shape_zyx": (-3, 10, 10)},
+    {"shape_zyx": (0, 10, 10)},
+    {"peak_photons": float("nan")},
+    {"peak_photons": 1e30},
+    {"background_photons": -50.0},
+], ids=["negative_shape", "zero_shape", "nan_photons", "absurd_photons", "negative_background"])
+def test_render_refuses_absurd_parameters(overrides):
+    """Negative or zero shapes, NaN or absurd photon counts and a negative background are
+    refused in one line."""
+    worm = random_worm(6, size_um=(16, 8, 6), seed=1)
+    with pytest.raises(FdlcError) as exc:
+        render_stack(worm, **{**SMALL, **overrides})
+    one_line(exc)
+
+
+def test_identity_properties_do_not_depend_on_the_other_neurons():
+    """With ``identity``, a neuron keeps its own properties in every stack of a recording, also
+    when another neuron (the highest identity) is missing from a volume."""
+    worm = random_worm(6, size_um=(20, 8, 6), seed=1)
+    no_colour = NeuronTable(worm.xyz)  # R, G, B drawn per neuron (NeuroPAL-like on/off)
+    _, all_six = render_stack(no_colour, identity=np.arange(6), identity_seed=3, seed=1, align=False, **SMALL)
+    _, first_four = render_stack(no_colour.subset(np.arange(4)), identity=np.arange(4), identity_seed=3, seed=2,
+                                 align=False, **SMALL)
+    for c in ("R", "G", "B"):
+        np.testing.assert_allclose(first_four.colours[c], all_six.colours[c][:4], err_msg=c)
+
+
+def test_identity_properties_are_independent_draws():
+    """With ``identity``, each per-neuron property has its own random stream: R, G and B differ
+    (no grey nuclei) and brightness does not follow the nucleus's size."""
+    worm = random_worm(60, size_um=(50, 16, 12), seed=2)
+    no_colour = NeuronTable(worm.xyz)
+    _, truth = render_stack(no_colour, identity=np.arange(60), identity_seed=5, align=False, **SMALL)
+    assert not np.allclose(truth.colours["R"], truth.colours["G"])
+    assert not np.allclose(truth.colours["G"], truth.colours["B"])
+    # Without identity the two are independent (r ~ -0.2 here); with it r ~ 0.83.
+    r = np.corrcoef(np.log(truth.extra["radius_um"].to_numpy(float)), np.log(truth.colours["W"]))[0, 1]
+    assert abs(r) < 0.5, r

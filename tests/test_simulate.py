@@ -1,7 +1,10 @@
 import numpy as np
+import pytest
 
+from napari_fdlc.errors import FdlcError
 from napari_fdlc.geometry import canonical_frame
 from napari_fdlc.simulate import SimulationParams, simulate_worm
+from napari_fdlc.table import NeuronTable
 
 
 def test_correspondence_is_known(worm):
@@ -41,3 +44,17 @@ def test_deterministic_with_seed(worm):
     b = simulate_worm(worm, rng=5)
     assert np.array_equal(a.table.xyz, b.table.xyz)
     assert canonical_frame(a.table.xyz)[0].shape == a.table.xyz.shape
+
+
+@pytest.mark.parametrize("what", ["empty", "nan"])
+def test_simulate_refuses_empty_or_non_finite_tables(what):
+    """An empty table, or one with a NaN position, is refused in one line."""
+    if what == "empty":
+        table = NeuronTable(np.zeros((0, 3)))
+    else:
+        xyz = np.random.default_rng(0).normal(size=(10, 3)) * [20, 5, 4]
+        xyz[2, 1] = np.nan
+        table = NeuronTable(xyz)
+    with pytest.raises(FdlcError) as exc:
+        simulate_worm(table, 0)
+    assert "\n" not in str(exc.value)

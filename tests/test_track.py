@@ -292,3 +292,49 @@ def test_cli_track_chirality_option(tmp_path, worm):
         paired = np.tile([n[-1:] in ("L", "R") for n in worm.labels], 2)
         right[chirality] = (names == np.tile(worm.labels, 2))[paired].mean()
     assert right["mirrored"] > 0.9 and right["mirrored"] > right["same"] + 0.3, right
+
+
+def test_track_positions_in_nanometres_do_not_exhaust_memory(identifier, gentle):
+    """A recording in nm is tracked (poorly) or refused in one line; the warp's grid once asked
+    numpy for hundreds of GiB (a dense grid over the extent; now only occupied cubes count)."""
+    volumes, _ = gentle
+    nm = [NeuronTable(v.xyz * 1000, v.colours, source=v.source) for v in volumes[:3]]
+    try:
+        result = track(nm, identifier=identifier)
+    except FdlcError:
+        return
+    assert [len(t) for t in result.track_id] == [len(v) for v in nm]
+
+
+def test_track_with_an_empty_first_volume_and_no_reference(identifier, gentle):
+    """The reference defaults to the first volume: when that is empty, a one-line refusal or an
+    answer with nothing in it, not numpy's error from a maximum over no track IDs."""
+    volumes, _ = gentle
+    empty = volumes[0].subset(np.arange(0))
+    try:
+        result = track([empty, *volumes[1:]], identifier=identifier)
+    except FdlcError:
+        return
+    assert len(result.track_id[0]) == 0
+
+
+def test_track_with_an_empty_reference_is_a_one_line_error(identifier, gentle):
+    """A reference without neurons: nothing can be tracked onto it, so a one-line refusal."""
+    volumes, _ = gentle
+    with pytest.raises(FdlcError):
+        track(volumes, references=[volumes[0].subset(np.arange(0))], identifier=identifier)
+
+
+@pytest.mark.parametrize("case", ["no frames", "time point beyond the frames"])
+def test_simulate_sequence_bad_request_is_a_one_line_error(case, worm):
+    """No frames gives an empty sequence (or a one-line refusal); a time point beyond the
+    frames is refused in one line."""
+    try:
+        if case == "no frames":
+            volumes, origins = simulate_sequence(worm, 0, SequenceParams(frames=0))
+            assert volumes == [] and origins == []
+        else:
+            simulate_sequence(worm, 0, SequenceParams(frames=10), only=(12,))
+            pytest.fail("a time point beyond the sequence was simulated")
+    except FdlcError:
+        pass

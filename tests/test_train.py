@@ -5,7 +5,8 @@ import torch
 from napari_fdlc.model import CorrespondenceModel, matching_loss
 from napari_fdlc.reference import generate_worm
 from napari_fdlc.simulate import simulate_worm
-from napari_fdlc.train import TRAIN_SIM, TrainConfig, _crop, collate, make_example, split_worms
+from napari_fdlc.corpus import Worm
+from napari_fdlc.train import TRAIN_SIM, TrainConfig, _crop, collate, held_out, make_example, split_worms
 
 
 def _examples(count, seed=0):
@@ -48,7 +49,6 @@ def test_registered_and_panel_examples_are_placed_as_inference_places_them():
     """A registered example is the template's canonical frame and the test's registration onto
     it in the right chirality (matched neurons land close); a panel example is a worm sampled
     from the atlas and the test registered onto the atlas."""
-    from napari_fdlc.corpus import Worm
     from napari_fdlc.reference import build_atlas
     from napari_fdlc.train import _targets, sample_example
 
@@ -79,7 +79,6 @@ def test_negative_examples_target_no_match():
 
 
 def test_split_keeps_validation_worms_out_of_training():
-    from napari_fdlc.corpus import Worm
 
     worms = [Worm(lab, f"{lab}{i}", generate_worm(seed=i)) for lab in ("A", "B") for i in range(5)]
     cfg = TrainConfig(train_labs=("A",), val_labs=("A", "B"), val_worms_per_lab=2)
@@ -105,7 +104,6 @@ def test_calibration_does_not_depend_on_the_settings_it_starts_from():
     from dataclasses import replace
 
     from napari_fdlc.identify import Identifier, InferenceSettings
-    from napari_fdlc.model import CorrespondenceModel
     from napari_fdlc.train import calibrate
 
     torch.manual_seed(0)
@@ -124,7 +122,6 @@ def test_tracking_examples_are_placed_as_the_tracker_places_them():
     """A tracking example is a recording's first volume (the reference, its canonical frame) and
     a later volume placed by the geometric chain: partners land within a few µm, and spurious
     or dropped neurons target "no match"."""
-    from napari_fdlc.corpus import Worm
     from napari_fdlc.train import tracking_example
 
     worms = [Worm("A", f"w{i}", generate_worm(seed=i)) for i in range(3)]
@@ -170,7 +167,6 @@ def test_train_cli_refuses_what_cannot_be_done(tmp_path, capsys, config, flags, 
 def test_mixed_handedness_rate_counts_pairs_of_a_lab_that_differ():
     """1 of lab A's 4 worms is mirrored (z flipped): 6 of its 12 ordered pairs differ; lab B's
     2 worms agree (0 of 2): 6 of 14."""
-    from napari_fdlc.corpus import Worm
     from napari_fdlc.table import NeuronTable
     from napari_fdlc.train import mixed_handedness_rate
 
@@ -187,7 +183,6 @@ def test_mixed_handedness_rate_counts_pairs_of_a_lab_that_differ():
 def test_worker_processes_make_the_same_batches_for_the_same_seed():
     """``workers`` moves example making into other processes: batches come padded as the
     training step expects them, and the stream is fixed by the seed and the worker count."""
-    from napari_fdlc.corpus import Worm
     from napari_fdlc.train import training_batches
 
     worms = [Worm("lab", f"w{k}", generate_worm(seed=k)) for k in range(4)]
@@ -216,3 +211,119 @@ def test_memoised_calls_keyed_by_id_never_answer_for_a_freed_object():
     rows = memoised(lambda table: len(table), lambda table: (id(table),), {})
     sizes = (3, 5, 7, 3, 5, 7)
     assert [rows([0] * n) for n in sizes] == list(sizes)  # each list freed before the next
+
+
+def _worms(labs=("NP", "EY"), per_lab=6):
+    return [Worm(lab, f"{lab}{i}", generate_worm(seed=300 + 10 * k + i))
+            for k, lab in enumerate(labs) for i in range(per_lab)]
+
+
+def _pairs_and_trained(worms, cfg):
+    """The validation pairs train() scores, and the ids of the tables it trains on."""
+    train, _, pairs = held_out(worms, cfg)
+    return pairs, {id(w.table) for w in train}
+
+
+def test_validation_pairs_only_score_held_out_worms():
+    """The worm named in a validation pair is always a held-out worm; a training worm may serve
+    as the template. (Until session 28 two thirds of the pairs named training worms, and they
+    chose the checkpoint and calibrated the inference settings.)"""
+    worms = _worms()
+    cfg = TrainConfig(train_labs=("NP", "EY"), val_labs=("NP", "EY"), val_worms_per_lab=2, val_pairs_per_lab=1000)
+    pairs, trained = _pairs_and_trained(worms, cfg)
+    assert all(len(p) == 2 * 5 for p in pairs.values())  # each held-out worm named from the 5 others
+    scored_training_worms = {lab: sum(id(test) in trained for _, test in p) for lab, p in pairs.items()}
+    assert all(n == 0 for n in scored_training_worms.values()), (
+        f"validation pairs whose test is a training worm, per lab: {scored_training_worms} "
+        f"of {({lab: len(p) for lab, p in pairs.items()})}")
+
+
+def test_panel_validation_and_calibration_tests_are_held_out_worms():
+    """The panel's validation and calibration tests are held-out worms only."""
+    from napari_fdlc.train import _panel_tests
+
+    worms = _worms()
+    cfg = TrainConfig(train_labs=("NP", "EY"), val_labs=("NP", "EY"), val_worms_per_lab=2, val_pairs_per_lab=1000)
+    pairs, trained = _pairs_and_trained(worms, cfg)
+    panel_tests = _panel_tests(worms, pairs, cfg.train_labs)
+    leaked = {lab: sum(id(t) in trained for t in tests) for lab, (_, tests) in panel_tests.items()}
+    assert set(panel_tests) == {"NP", "EY"}
+    assert all(n == 0 for n in leaked.values()), f"panel tests that are training worms, per lab: {leaked}"
+
+
+class _Stop(Exception):
+    pass
+
+
+def _split_seen_by_train(monkeypatch, cfg):
+    """The (train, val) split that train() makes for ``cfg`` (stopped right after it)."""
+    import napari_fdlc.train as T
+
+    seen = {}
+    real_split = T.split_worms
+
+    def split(worms, c, rng):
+        seen["split"] = real_split(worms, c, rng)
+        return seen["split"]
+
+    def stop(*args, **kwargs):
+        raise _Stop
+
+    monkeypatch.setattr(T, "split_worms", split)
+    monkeypatch.setattr(T, "validation_pairs", stop)
+    with pytest.raises(_Stop):
+        T.train(cfg, log=lambda *_: None)
+    return seen["split"]
+
+
+def test_a_warm_started_stage_validates_on_worms_its_start_never_trained_on(tmp_path, monkeypatch, write_corpus):
+    """The held-out worms come from ``split_seed``, not the example seed: a stage warm-started
+    with another seed (the shipped recipe's stage 4, seed 1, from stage 3, seed 0) holds out
+    worms its start never trained on."""
+    from napari_fdlc.model import CorrespondenceModel, save_model
+
+    root = write_corpus(tmp_path / "corpus", {lab: [w.table for w in _worms((lab,), 6)] for lab in ("NP", "EY")})
+
+    base = dict(corpus=str(root), train_labs=("NP", "EY"), val_labs=("NP", "EY"), val_worms_per_lab=2,
+                model={"layers": 1, "dim": 16}, steps=2, calibrate=False)
+    first = TrainConfig(**base, seed=0, out=str(tmp_path / "stage3"))
+    train0, _ = _split_seen_by_train(monkeypatch, first)
+    save_model(CorrespondenceModel(first.model), first.out, {"train_config": first.to_json()})
+
+    second = TrainConfig(**base, seed=1, init_from=first.out, out=str(tmp_path / "stage4"))
+    train1, _ = _split_seen_by_train(monkeypatch, second)
+    trained0 = {(w.lab, w.name) for w in train0}
+    held1 = {(w.lab, w.name) for w in _worms_of(root)} - {(w.lab, w.name) for w in train1}
+    assert held1
+    assert not held1 & trained0, (
+        f"worms held out by the warm-started stage that its start trained on: {sorted(held1 & trained0)}")
+
+
+def _worms_of(root):
+    from napari_fdlc.corpus import load_corpus
+
+    return load_corpus(root)
+
+
+def test_a_neuron_named_without_its_side_is_not_taught_no_match(corpus_path):
+    """A neuron some SF worms name without its side ('AIB' where the template has AIBL and
+    AIBR) has a partner in the template: its target is unknown (-1), not "no match"."""
+    from napari_fdlc.corpus import load_corpus
+    from napari_fdlc.train import _targets
+
+    import pandas as pd
+
+    worms = load_corpus(corpus_path, labs=["SF"])
+    test = next(w.table for w in worms if w.name == "2023-01-09-08")
+    template = next(w.table for w in worms
+                    if (w.table.labels == "").mean() < 0.1 and {"AIBL", "AIBR", "RICL", "RICR"} <= set(w.table.labels))
+    names = set(template.labels) - {""}
+    # the names as the file writes them (rows in file order), whatever reading makes of them
+    written = pd.read_csv(corpus_path / "SF" / "2023-01-09-08.csv", dtype=str, keep_default_na=False)["label"]
+    assert len(written) == len(test)
+    sideless = [j for j, n in enumerate(written.str.rstrip("?"))
+                if n and n not in names and (n + "L" in names or n + "R" in names)]
+    assert sideless, "the corpus no longer has side-less names in this worm"
+    target = _targets(template, test)
+    taught_no_match = [written[j] for j in sideless if target[j] == len(template)]
+    assert not taught_no_match, f"neurons whose partner the template has, taught as no match: {taught_no_match}"

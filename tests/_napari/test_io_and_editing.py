@@ -7,7 +7,10 @@ import shutil
 
 import numpy as np
 import pandas as pd
+import pytest
 
+from napari_fdlc._napari._io import write_neuron_csv
+from napari_fdlc.errors import FdlcError
 from napari_fdlc.review import SESSION_SUFFIX
 
 
@@ -20,6 +23,40 @@ def test_manifest_is_valid():
     assert {w.display_name for w in c.widgets} == {"Auto-label", "Track neurons"}
     assert [s.key for s in c.sample_data] == ["neuropal"]
     assert len(c.readers) == 2 and c.writers[0].layer_types == ["points"]
+
+
+def test_writer_does_not_merge_time_points(tmp_path):
+    """Points over time (t, z, y, x) are written with a 't' column (or refused in one line),
+    not merged into one worm."""
+    data = np.array([[0, 1, 2, 3], [1, 1, 2, 3], [1, 4, 5, 6]], dtype=float)
+    path = tmp_path / "points.csv"
+    try:
+        written = write_neuron_csv(str(path), data, {"scale": (1, 1, 1, 1)})
+    except FdlcError as exc:
+        assert "\n" not in str(exc)
+        assert not path.exists()
+        return
+
+    df = pd.read_csv(written[0])
+    assert "t" in df.columns and list(df["t"]) == [0, 1, 1]
+
+
+def test_writer_refuses_an_empty_layer(tmp_path):
+    """An empty Points layer is refused in one line: a header-only CSV could not be opened again."""
+    path = tmp_path / "empty.csv"
+    with pytest.raises(FdlcError) as exc:
+        write_neuron_csv(str(path), np.zeros((0, 3)), {})
+    assert "\n" not in str(exc.value)
+    assert not path.exists()
+
+
+def test_writer_unwritable_path_is_an_fdlc_error(tmp_path):
+    """A path that cannot be written is one FdlcError line, not a bare OSError."""
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    with pytest.raises(FdlcError) as exc:
+        write_neuron_csv(str(blocker / "points.csv"), np.zeros((2, 3)), {})
+    assert "\n" not in str(exc.value)
 
 
 def test_open_a_file_label_export_reopen(make_napari_viewer, sample_files, identifier, templates, tmp_path, monkeypatch):
@@ -68,7 +105,6 @@ def test_open_a_file_label_export_reopen(make_napari_viewer, sample_files, ident
     (np_layer,) = viewer.open(npid, plugin="napari-fdlc")
     assert np.allclose(np_layer.data[:, ::-1], read_table(out).xyz, atol=1e-3)
     # the writer: a Points layer saved as a neuron-ID CSV
-    from napari_fdlc._napari._io import write_neuron_csv
 
     data, meta, _ = layer.as_layer_data_tuple()
     (written,) = write_neuron_csv(str(tmp_path / "saved.csv"), data, meta)
@@ -188,7 +224,6 @@ def test_gui_stays_responsive_while_labelling(labelled_viewer, identifier):
 
     from qtpy.QtCore import QTimer
 
-    from napari_fdlc.errors import FdlcError
 
     viewer, widget = labelled_viewer
 
@@ -225,7 +260,6 @@ def test_wait_returns_when_the_job_failed_before_it_was_called(labelled_viewer):
     import threading
     import time
 
-    from napari_fdlc.errors import FdlcError
 
     viewer, widget = labelled_viewer
     reached = threading.Event()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from datetime import datetime, timezone
 from types import SimpleNamespace
 
 import h5py
@@ -297,6 +298,112 @@ def test_ragged_character_labels_are_joined():
     assert _text(np.array([b"A", b"V", b"A", b"L"], dtype=object)) == "AVAL"
     assert _text(["R", "M", "D", "?"]) == "RMD?"
     assert _text(b"AVAR") == "AVAR"
+
+
+@pytest.mark.parametrize("bad", ["mNeptune2.5/red", "TagRFP: 561 nm"])
+def test_write_nwb_with_slash_or_colon_in_a_channel_name(tmp_path, stack, bad):
+    """Channel names with '/' or ':' (legal in OME) are written: NWB object names cannot hold
+    them, so the OpticalChannel names are sanitised and the names kept unchanged in
+    order_optical_channels."""
+    names = list(NAMES)
+    names[0] = bad
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, stack, channel_names=names)
+    got = read_stack(path)
+    assert got.channel_names == names
+    assert got.channel_roles == ["R", "G", "B", "W"]
+
+
+def test_write_nwb_refuses_nan_neuron_positions(tmp_path, stack):
+    """A NaN neuron position is refused in one line, and nothing is left on disk."""
+    path = tmp_path / "worm.nwb"
+    neurons = NeuronTable([[3.0, 2.5, 1.5], [np.nan, 1.0, 3.0]], labels=["AVAL", "AVAR"])
+    with pytest.raises(FdlcError) as exc:
+        write_nwb(path, stack, neurons)
+    one_line_error(exc)
+    assert not path.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_nwb_with_a_neuron_left_of_the_image(tmp_path, stack):
+    """A neuron outside the image (x < 0, which a uint32 voxel mask cannot hold) is refused in
+    one line with nothing written, or written so that it reads back where it was."""
+    path = tmp_path / "worm.nwb"
+    neurons = NeuronTable([[3.0, 2.5, 1.5], [-2.0, 1.0, 3.0]], labels=["AVAL", "AVAR"])
+    try:
+        write_nwb(path, stack, neurons)
+    except FdlcError as exc:
+        assert "\n" not in str(exc)
+        assert not path.exists()
+        return
+    got = read_nwb_neurons(path, colours=False)
+    np.testing.assert_allclose(got.xyz, neurons.xyz, atol=0.76)
+
+
+def test_write_nwb_to_an_unwritable_place_names_the_target(tmp_path, stack):
+    """A place that cannot be written is one line naming the target, not the hidden temporary
+    file nor a bare OSError."""
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    target = blocker / "sub" / "worm.nwb"
+    with pytest.raises(FdlcError) as exc:
+        write_nwb(target, stack)
+    assert ".tmp" not in one_line_error(exc, str(target))
+
+
+def test_write_nwb_refuses_a_recording(tmp_path, stack):
+    """An NWB file here holds one volume: a recording (T, C, Z, Y, X) is refused in one line."""
+    series = StackSeries(np.stack([stack.data, stack.data]), stack.voxel_size_zyx, stack.channel_roles,
+                         channel_names=NAMES)
+    with pytest.raises(FdlcError) as exc:
+        write_nwb(tmp_path / "rec.nwb", series)
+    one_line_error(exc)
+
+
+@pytest.mark.parametrize("spacing", [[0.0, 0.0, 0.0], [0.3, 0.25, np.nan], [-0.3, -0.25, -1.5]],
+                         ids=["zero", "nan", "negative"])
+def test_read_nwb_neurons_refuses_a_bad_grid_spacing(tmp_path, stack, spacing):
+    """A zero, NaN or negative grid spacing is refused by read_nwb_neurons as by read_stack,
+    not turned into positions that are all 0, NaN or negative."""
+
+    from napari_fdlc.io.images import ImageError
+
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, stack, NeuronTable([[3.0, 2.5, 1.5], [6.0, 1.0, 3.0]], labels=["AVAL", "AVAR"]))
+    with h5py.File(path, "a") as f:
+        f["general/optophysiology/NeuroPALImVol/grid_spacing"][...] = spacing
+    with pytest.raises(ImageError) as exc:
+        read_nwb_neurons(path, colours=False)
+    one_line_error(exc)
+
+
+def test_nwb_mask_centre_is_weighted_when_a_voxel_has_zero_weight(tmp_path):
+    """Centres are the weighted mean of multi-voxel masks (docs/image_formats.md), also when a
+    voxel weighs 0."""
+    from pynwb import NWBHDF5IO, NWBFile
+    from pynwb.ophys import ImageSegmentation, OpticalChannel
+
+
+    nwb = NWBFile(session_description="t", identifier="t", session_start_time=datetime.now(timezone.utc))
+    device = nwb.create_device(name="Microscope")
+    plane = nwb.create_imaging_plane(
+        name="NeuroPALImVol", optical_channel=[OpticalChannel(name="W", description="", emission_lambda=np.nan)],
+        description="", device=device, excitation_lambda=np.nan, indicator="NeuroPAL", location="head",
+        grid_spacing=[0.5, 0.5, 1.0], grid_spacing_unit="micrometers",
+    )
+    module = nwb.create_processing_module(name="NeuroPAL", description="")
+    seg = ImageSegmentation(name="NeuroPALSegmentation")
+    module.add(seg)
+    ps = seg.create_plane_segmentation(name="NeuroPALNeurons", description="", imaging_plane=plane)
+    ps.add_column(name="ID_labels", description="")
+    ps.add_roi(voxel_mask=[(10, 10, 2, 1.0), (20, 10, 2, 0.0)], ID_labels="AVAL")
+    ps.add_roi(voxel_mask=[(4, 6, 3, 1.0)], ID_labels="AVAR")
+    path = tmp_path / "masks.nwb"
+    with NWBHDF5IO(str(path), "w") as io:
+        io.write(nwb)
+    got = read_nwb_neurons(path, colours=False)
+    np.testing.assert_allclose(got.xyz[0], [5.0, 5.0, 2.0])
+    np.testing.assert_allclose(got.xyz[1], [2.0, 3.0, 3.0])
 
 
 # ----- ND2 (cannot be written: a stand-in with ND2File's interface is injected) ---------------
