@@ -338,3 +338,61 @@ def test_simulate_sequence_bad_request_is_a_one_line_error(case, worm):
             pytest.fail("a time point beyond the sequence was simulated")
     except FdlcError:
         pass
+
+
+def test_two_labelled_references_never_give_one_name_to_two_tracks(identifier, worm):
+    """Two labelled references that put one name on different neurons: the first reference's
+    name wins, and no two tracks share a name."""
+    n = len(worm)
+    first = np.full(n, "", dtype=object)
+    first[0] = "AVAL"
+    second = np.full(n, "", dtype=object)
+    second[40] = "AVAL"  # the second reference's annotator named another neuron AVAL
+    refs = [NeuronTable(worm.xyz, worm.colours, first), NeuronTable(worm.xyz + 0.3, worm.colours, second)]
+    result = track([worm, worm], references=refs, identifier=identifier, settings=TrackSettings(use_colour=False))
+    named = [i for i, name in enumerate(result.names) if name == "AVAL"]
+    assert named == [0], named
+    df = result.frame([worm, worm])
+    assert df[df["name"] == "AVAL"].groupby("t")["track_id"].nunique().max() == 1
+
+
+def test_reference_t_picks_the_exact_integer_time_point(tmp_path, gentle, monkeypatch):
+    """--reference-t with integer clocks beyond 2**53 (nanoseconds, which the t column keeps
+    exact) picks the volume asked for: compared as an integer, not as a float."""
+    import napari_fdlc.track as track_module
+
+    volumes = gentle[0][:3]
+    times = [1_700_000_000_000_000_000 + k for k in range(3)]
+    src = tmp_path / "seq.csv"
+    write_table(join_by_time(volumes, times).drop(columns=["label"]), src)
+    seen = {}
+    real = track_module.track
+
+    def spy(seq, references=None, *args, **kwargs):
+        seen["references"] = references
+        return real(seq, references, *args, **kwargs)
+
+    monkeypatch.setattr(track_module, "track", spy)
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(src), "--method", "geometry", "--reference-t", str(times[2]), "--quiet", "--out", str(out)]) == 0
+    (reference,) = seen["references"]
+    sizes = (len(reference), [len(v) for v in volumes])
+    assert len(reference) == len(volumes[2]), sizes
+    assert np.allclose(reference.xyz, volumes[2].xyz, atol=1e-3)
+
+
+def test_folder_order_does_not_depend_on_the_directory_listing(tmp_path, worm, monkeypatch):
+    """Files at the same place in natural order (t1.csv, t01.csv) are ordered by name, not by
+    the file system's listing, so a folder gives the same volumes in the same order anywhere."""
+    from pathlib import Path
+
+    folder = tmp_path / "vols"
+    folder.mkdir()
+    for name in ("t1.csv", "t01.csv", "t2.csv"):
+        write_table(worm, folder / name)
+    listing = Path.iterdir
+    orders = []
+    for reverse in (False, True):
+        monkeypatch.setattr(Path, "iterdir", lambda self, r=reverse: iter(sorted(listing(self), reverse=r)))
+        orders.append(read_sequence([str(folder)]).sources)
+    assert orders[0] == orders[1], orders

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 import time
 from pathlib import Path
@@ -149,7 +150,9 @@ def _reference_time(raw: str) -> float:
 
 def _volume_at(seq, raw: str):
     value = _reference_time(raw)
+    if re.fullmatch(r"[+-]?\d+", raw.strip()):
+        value = int(raw)  # exact: integer clocks (ns) pass 2**53, where floats merge neighbours
     for t, volume in zip(seq.times, seq.volumes):
-        if float(t) == value:
+        if t == value:
             return volume
     raise FdlcError(f"--reference-t {raw}: no time point {raw} in the sequence")

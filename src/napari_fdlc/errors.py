@@ -11,7 +11,9 @@ import os
 import sys
 import tempfile
 from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
+from typing import Callable
 
 
 class FdlcError(Exception):
@@ -26,9 +28,27 @@ class ModelError(FdlcError):
     """Weights or a model configuration that cannot be used."""
 
 
+_warning_handler: ContextVar[Callable[[str], None] | None] = ContextVar("fdlc_warning_handler", default=None)
+
+
 def warn(message: str) -> None:
-    """Print one warning line on stderr (the contract asks for one line, no traceback)."""
+    """Print one warning line on stderr (the contract asks for one line, no traceback), and
+    hand it to the handler of an enclosing :func:`warnings_to` (a napari notification)."""
     print(f"fdlc: warning: {message}", file=sys.stderr, flush=True)
+    handler = _warning_handler.get()
+    if handler is not None:
+        handler(message)
+
+
+@contextmanager
+def warnings_to(handler: Callable[[str], None]):
+    """Within this block (and thread), also hand every :func:`warn` line to ``handler``: what
+    a reader warns about reaches a napari user, who does not see stderr."""
+    token = _warning_handler.set(handler)
+    try:
+        yield
+    finally:
+        _warning_handler.reset(token)
 
 
 def check_output(out: str | os.PathLike, inputs=(), create_folder: bool = False) -> Path:

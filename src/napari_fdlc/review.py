@@ -583,8 +583,11 @@ class ReviewSession:
         cand, cand_p = labelling.candidates(K)
         keep = {i for i, st in enumerate(s.status) if st != "auto"} if s.labelled else set()
         for j in range(n):
-            # A decided neuron keeps the machine's earlier answer (the labelling reports the
-            # user's fixed name there), so 'accepted' vs 'corrected' stays meaningful.
+            # A decided neuron keeps the machine's earlier answer and candidates (the labelling
+            # reports the user's fixed name there, at 1.0), so 'accepted' vs 'corrected' stays
+            # meaningful and clearing the decision offers the machine's choices again.
+            if j in keep and any(s.cand[j]):
+                continue
             if j not in keep:
                 s.auto_id[j] = str(labelling.auto_id[j] or "")
                 s.auto_conf[j] = float(labelling.auto_conf[j])
@@ -796,7 +799,8 @@ class ReviewSession:
 
     def _after_history_move(self, edit: Edit) -> None:
         structure = len(edit.before.table) != len(edit.after.table) or edit.before.table is not edit.after.table
-        if self.current is not None and self.current >= len(self):
+        if self.current is not None and (self.current >= len(self) or len(edit.before.table) != len(edit.after.table)):
+            # Rows came back or went: the current row number may now be another cell.
             self.current = None
         self._changed("structure" if structure else ("labelling" if edit.rows is None else "edit"), edit.rows)
 

@@ -170,7 +170,7 @@ def read_sequence(paths: list[str] | str) -> Sequence:
         if path.is_dir():
             # hidden files are left out: e.g. macOS's "._name.csv" beside every copied file
             files = sorted((p for p in path.iterdir() if p.is_file() and p.suffix.lower() == ".csv" and not p.name.startswith(".")),
-                           key=lambda p: _natural_key(p.name))
+                           key=lambda p: (_natural_key(p.name), p.name))  # t1 and t01: by name, not by listing
             if not files:
                 raise FdlcError(f"{path}: the folder holds no .csv file")
             return Sequence([read_volume(f, _ONE_PER_FILE) for f in files], list(range(len(files))), [f.name for f in files])
@@ -458,10 +458,12 @@ def track(
     refs = [_Reference(t, i) for t, i in zip(tables, ids)]
     n_ids = int(max(i.max() for i in ids)) + 1
     names = [""] * n_ids
-    for ref in reversed(refs):  # the first reference's names win
+    given = set()
+    for ref in refs:  # the first reference's names win, on a track and for a name
         for i, n in zip(ref.ids, ref.table.label_strings()):  # an unsure name keeps its "?"
-            if n:
+            if n and not names[i] and n.rstrip("?") not in given:
                 names[i] = n
+                given.add(n.rstrip("?"))
     result = TrackResult([], [], names, [], list(seq.times), list(seq.sources))
     total = len(seq)
     for start in range(0, total, s.chunk):

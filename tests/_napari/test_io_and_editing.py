@@ -391,3 +391,22 @@ def test_neurons_not_in_micrometres_get_a_warning(make_napari_viewer, identifier
     widget.set_neurons("pixels")
     assert widget.auto_label() is not None
     assert len(shown) == 1 and "its neurons lie" in shown[0] and "must be micrometres" in shown[0]
+
+
+def test_a_table_opened_in_napari_shows_what_its_reader_warns_about(tmp_path, worm):
+    """A name that occurs twice is read as unnamed on both rows; opening the file in napari
+    says so in a notification, not only on stderr."""
+    from napari.utils.notifications import notification_manager
+
+    from napari_fdlc._napari._io import read_table_layer
+    from napari_fdlc.table import NeuronTable, write_table
+
+    labels = np.array(worm.labels, dtype=object)
+    named = np.flatnonzero(labels != "")
+    labels[named[1]] = labels[named[0]]
+    path = tmp_path / "repeated.csv"
+    write_table(NeuronTable(worm.xyz, worm.colours, labels), path)
+    before = len(notification_manager.records)
+    read_table_layer(str(path))
+    messages = [str(r.message) for r in notification_manager.records[before:]]
+    assert any(labels[named[0]] in m and "more than once" in m for m in messages), messages

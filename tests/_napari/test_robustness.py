@@ -14,7 +14,9 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
+from napari_fdlc._napari._layers import is_image_layer, layer_xyz_um
 from napari_fdlc._napari._widget import NONE
+from napari_fdlc.table import NeuronTable, write_table
 
 
 class _Slow:
@@ -431,3 +433,71 @@ def test_a_key_with_several_neurons_selected_names_none_of_them(labelled_viewer)
     viewer.window._qt_viewer._key_map_handler.press_key("A")
     assert set(widget.session.status) == {"auto"}
     assert "3 neurons are selected" in widget.last_error
+
+
+def test_undoing_a_deletion_keeps_the_current_neuron_on_the_same_cell(labelled_viewer):
+    """Delete a point, select a neuron, Ctrl+Z: the current neuron is not left on its row number,
+    which the undone deletion gives to another cell (the review box and keys would act on a
+    neuron the user did not pick)."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    session = widget.session
+    layer.selected_data = {3}
+    layer.remove_selected()
+    widget.select_neuron(10)  # row 11 before the deletion
+    cell = session.table.xyz[10].copy()
+    widget.undo()
+    current = widget.current
+    assert current is None or np.allclose(session.table.xyz[current], cell), (current, cell)
+    assert current is None or set(layer.selected_data) == {current}
+
+
+def test_a_cleared_correction_offers_the_machines_candidates_again(labelled_viewer):
+    """Correct a neuron, Re-label, Clear: the Candidates dropdown offers the machine's top 3
+    again, not the cleared name at 1.00 (a decided neuron keeps the machine's earlier candidates,
+    as it keeps its earlier name)."""
+    viewer, widget = labelled_viewer
+    widget.auto_label()
+    session = widget.session
+    i = next(j for j in reversed(session.review_order()) if len(session.candidates(j)) == 3)
+    widget.select_neuron(i)
+    before = [widget.candidate_combo.itemText(k) for k in range(widget.candidate_combo.count())]
+    widget.pick_candidate(i, 2)
+    assert widget.relabel() is not None, widget.last_error
+    widget.clear(i)
+    after = [widget.candidate_combo.itemText(k) for k in range(widget.candidate_combo.count())]
+    assert after == before
+
+
+def test_auto_label_again_after_the_voxel_size_changed_puts_points_on_their_neurons(labelled_viewer):
+    """Auto-label again after the image's voxel size (scale) changed: the reused neuron-ID layer
+    takes the new scale, so its points sit on their neurons (and positions read back from it are
+    right)."""
+    viewer, widget = labelled_viewer
+    widget.auto_label()
+    for layer in viewer.layers:
+        if is_image_layer(layer):
+            layer.scale = tuple(np.asarray(layer.scale, dtype=float) * 2)
+    layer = widget.auto_label()
+    assert layer is not None, widget.last_error
+    assert np.allclose(layer.scale[-3:], widget.session.voxel_size_zyx)
+    assert np.abs(layer_xyz_um(layer) - widget.session.table.xyz).max() < 1e-6
+
+
+def test_a_template_file_with_a_repeated_name_says_so_in_napari(make_napari_viewer, templates, tmp_path):
+    """A template file whose name occurs twice loses it on both rows; napari says so (a reader's
+    warning reaches the user, not only stderr)."""
+    viewer = make_napari_viewer()
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    t = templates[0]
+    labels = np.array(t.labels, dtype=object).copy()
+    named = np.flatnonzero(labels != "")
+    labels[named[1]] = labels[named[0]]
+    path = tmp_path / "template.csv"
+    write_table(NeuronTable(t.xyz, t.colours, labels), path)
+    from napari.utils.notifications import notification_manager
+
+    before = len(notification_manager.records)
+    widget.add_template_file(path)
+    assert any(labels[named[0]] in m for m in _notifications_since(before)), \
+        _notifications_since(before)

@@ -6,7 +6,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from napari_fdlc.table import write_table
+from napari.utils.notifications import notification_manager
+
+from napari_fdlc.table import NeuronTable, write_table
 
 
 @pytest.fixture
@@ -211,3 +213,26 @@ def test_table_volumes_lie_on_their_frames_and_other_times_in_order():
     result = TrackResult([ids, ids], [np.ones(len(worm))] * 2, [""] * len(worm), [{}, {}])
     tracks, points = track_layers(result, sequence, "s", frames_of(sequence.times))
     assert set(tracks[0][:, 1]) == {0, 3} and set(points[0][:, 0]) == {0, 3}
+
+
+def test_a_track_reference_with_a_repeated_name_says_so_in_napari(track_widget, tmp_path):
+    """A labelled reference whose name occurs twice: the worker's reader warning is shown in
+    napari when the job ends."""
+    from napari_fdlc.reference import generate_worm
+    from napari_fdlc.track import join_by_time
+
+    viewer, widget = track_widget
+    worm = generate_worm(seed=4)
+    seq = tmp_path / "seq.csv"
+    write_table(join_by_time([worm, worm]).drop(columns=["label"]), seq)
+    labels = np.array(worm.labels, dtype=object).copy()
+    named = np.flatnonzero(labels != "")
+    labels[named[1]] = labels[named[0]]
+    ref = tmp_path / "ref.csv"
+    write_table(NeuronTable(worm.xyz, worm.colours, labels), ref)
+    widget.set_sequence(seq)
+    widget.set_reference(ref)
+    before = len(notification_manager.records)
+    assert widget.run() is not None, widget.last_error
+    messages = [str(r.message) for r in notification_manager.records[before:]]
+    assert any(labels[named[0]] in m for m in messages), messages

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..errors import FdlcError, warn
+from ..errors import FdlcError, warn, warnings_to
 from ..review import ReviewSession, find_session
 from ._layers import META_KEY, _short_name, review_points, stack_layers, table_points
 
@@ -33,6 +33,18 @@ def _one_path(path):
     return str(path)
 
 
+def _show_warning(message: str) -> None:
+    from napari.utils.notifications import show_warning
+
+    show_warning(message)
+
+
+def _warn_in_napari(message: str) -> None:
+    """A warning the user sees in napari (and on stderr, where scripts see it)."""
+    with warnings_to(_show_warning):
+        warn(message)
+
+
 # ----- stacks --------------------------------------------------------------------------------
 
 
@@ -44,6 +56,7 @@ def get_stack_reader(path):
     return read_stack_layers
 
 
+@warnings_to(_show_warning)  # what the readers warn about reaches the user
 def read_stack_layers(path) -> list[tuple]:
     """A stack's channels as image layers (a recording's as t, z, y, x layers), with the
     annotated neurons of an NWB file and a saved Auto-label session."""
@@ -106,12 +119,6 @@ def restored_session_layer(image_key: str, shape_zyx=None):
     return review_points(session, name, {"session": str(path), "image": image_key})
 
 
-def _warn_in_napari(message: str) -> None:
-    """A warning the user sees in napari (and on stderr, where scripts see it)."""
-    from napari.utils.notifications import show_warning
-
-    warn(message)
-    show_warning(message)
 
 
 # ----- neuron tables --------------------------------------------------------------------------
@@ -133,6 +140,7 @@ def get_table_reader(path):
     return read_table_layer if (ours or neuropal) else None
 
 
+@warnings_to(_show_warning)
 def read_table_layer(path) -> list[tuple]:
     from ..table import read_table
 

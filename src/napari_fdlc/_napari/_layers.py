@@ -164,7 +164,7 @@ def table_points(
     kwargs = {
         "name": name or _short_name(table.source),
         "scale": scale,
-        "size": _point_size(scale),
+        "size": point_size(scale),
         "features": features,
         "face_color": "transparent",
         "border_color": "white",
@@ -188,7 +188,7 @@ def points_coordinates(xyz_um: np.ndarray, voxel_size_zyx=None) -> tuple[np.ndar
     return zyx / vox, tuple(float(v) for v in vox)
 
 
-def _point_size(scale) -> float:
+def point_size(scale) -> float:
     """Points are sized in data units: one nucleus across in x/y."""
     return POINT_SIZE_UM / float(np.mean(np.asarray(scale)[-2:]))
 
@@ -305,7 +305,7 @@ def review_points(session, name: str, metadata: dict | None = None) -> tuple:
     kwargs = {
         "name": name,
         "scale": scale,
-        "size": _point_size(scale),
+        "size": point_size(scale),
         "features": review_features(session),
         "face_color": "transparent",
         "border_color": review_colours(session),

@@ -57,7 +57,7 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from ..errors import FdlcError
+from ..errors import FdlcError, warnings_to
 from ..review import (
     DEFAULT_THRESHOLD,
     ReviewSession,
@@ -79,6 +79,7 @@ from ._layers import (
     is_image_layer,
     layer_role,
     named_count,
+    point_size,
     points_coordinates,
     review_colours,
     review_features,
@@ -605,7 +606,8 @@ class AutoLabelWidget(QWidget):
         """Read a labelled neuron table and offer it as a template (and choose it)."""
         from ..table import implausible_scale, read_table
 
-        table = read_table(path)
+        with warnings_to(self._notify_warning):
+            table = read_table(path)
         if not table.named.any():
             raise FdlcError(f"{path}: the table has no named neuron; a template needs names")
         reason = implausible_scale(table)
@@ -1040,6 +1042,10 @@ class AutoLabelWidget(QWidget):
         with self._guarded():
             if structure or len(layer.data) != len(session):
                 coords, scale = points_coordinates(session.table.xyz, session.voxel_size_zyx)
+                if len(layer.scale) == len(scale) and not np.allclose(layer.scale, scale):
+                    # a layer reused after the voxel size changed: its data are in the new voxels
+                    layer.scale = scale
+                    layer.size = point_size(scale)
                 current = np.asarray(layer.data)
                 if current.shape != coords.shape or not np.allclose(current, coords):
                     layer.selected_data = set()

@@ -49,7 +49,7 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from ..errors import FdlcError
+from ..errors import FdlcError, warnings_to
 from ._io import image_key_of
 from ._jobs import wait_until_idle
 from ._layers import META_KEY, _short_name, is_image_layer, layer_role, stack_from_layers
@@ -317,8 +317,9 @@ class TrackWidget(QWidget):
             name = source[len("recording: "):]
         diameter = float(self.diameter_spin.value())
 
-        @thread_worker(start_thread=False, ignore_errors=True)
-        def work():
+        warned: list[str] = []  # what the readers warn about, shown when the job ends
+
+        def job():
             from ..table import read_volume
             from ..track import Sequence, TrackSettings, read_sequence, track
 
@@ -349,6 +350,11 @@ class TrackWidget(QWidget):
                            progress=lambda done, total: signals.progress.emit("tracking", done, total))
             return sequence, result, frames
 
+        @thread_worker(start_thread=False, ignore_errors=True)
+        def work():
+            with warnings_to(warned.append):
+                return job()
+
         worker = work()
         self._worker = worker
         self._set_busy(True)
@@ -356,6 +362,7 @@ class TrackWidget(QWidget):
         worker.returned.connect(lambda out: self._show(*out, name))
         worker.errored.connect(self._on_error)
         worker.finished.connect(lambda: self._set_busy(False))
+        worker.finished.connect(lambda: [self._warn(message) for message in warned])
         worker.start()
         if wait:
             self.wait()
@@ -398,6 +405,11 @@ class TrackWidget(QWidget):
             show_error(message)
         except Exception:  # pragma: no cover - notification machinery unavailable
             pass
+
+    def _warn(self, message: str) -> None:
+        from napari.utils.notifications import show_warning
+
+        show_warning(message)
 
     def _set_busy(self, busy: bool) -> None:
         self._busy = busy
