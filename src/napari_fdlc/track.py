@@ -594,7 +594,8 @@ def simulate_sequence(
 ) -> tuple[list[NeuronTable], list[np.ndarray]]:
     """Volumes of ``table``'s worm moving smoothly; returns (volumes, origin per volume) where
     ``origin[t][j]`` is the source row of neuron j of volume t (-1 = spurious). ``only``: just
-    these time points (training needs three of a recording)."""
+    these time points (training needs three of a recording): the same motion as the whole
+    sequence's, with their drops, spurious points and noise drawn anew (not the same volumes)."""
     from .simulate import _spurious_points
 
     p = params or SequenceParams()
