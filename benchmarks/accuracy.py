@@ -7,7 +7,7 @@ threshold's accuracy/coverage table.
 
     python benchmarks/accuracy.py [--pairs-per-lab 20] [--panel-worms-per-lab 40] [--no-cpd]
 
-Same as `fdlc evaluate`. The corpus is read in place (default ../shared/data/neuropal_corpus).
+Same as `fdlc evaluate --out docs/accuracy.md`. The corpus is read in place (default ../shared/data/neuropal_corpus).
 """
 
 from __future__ import annotations
@@ -22,5 +22,5 @@ from napari_fdlc._cli_evaluate import add_arguments, run  # noqa: E402
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_arguments(parser)
+    add_arguments(parser, default_out="docs/accuracy.md")
     sys.exit(run(parser.parse_args()))

@@ -433,6 +433,18 @@ def test_bad_values_are_one_line_before_any_work(tmp_path, table_files, capsys, 
     assert [p.name for p in folder.iterdir()] == ["v0.csv"]
 
 
+def test_train_refuses_resume_together_with_init_from(tmp_path, untrained_weights, capsys):
+    """--resume continues the checkpoint at --out, --init-from starts anew from other weights:
+    both given is refused (--init-from was silently ignored)."""
+    import shutil
+
+    for suffix in (".safetensors", ".json"):
+        shutil.copy(f"{untrained_weights}{suffix}", tmp_path / f"m{suffix}")
+    assert run("train", "--resume", "--init-from", untrained_weights, "--corpus", tmp_path / "none",
+               "--out", tmp_path / "m") == 2
+    assert "--init-from" in capsys.readouterr().err
+
+
 def test_a_folder_where_one_answer_goes_is_refused_before_any_answer_is_written(tmp_path, table_files, untrained_weights, capsys):
     test, template = table_files
     (tmp_path / "ids" / "test.csv").mkdir(parents=True)

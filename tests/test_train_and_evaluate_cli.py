@@ -339,6 +339,20 @@ def test_evaluate_out_onto_a_folder_writes_nothing_and_names_the_output(tmp_path
     assert not (tmp_path / "images").exists()
 
 
+def test_evaluate_without_matplotlib_writes_the_report_without_the_plot(tmp_path, fake_corpus, untrained_weights,
+                                                                         capsys, monkeypatch):
+    """matplotlib comes with the [test] extra only: without it the report is still written
+    (the plot left out, one warning line), not lost to an ImportError at the end of the run."""
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    out = tmp_path / "acc.md"
+    assert run("evaluate", "--corpus", fake_corpus, "--labs", "NP", "--pairs-per-lab", "1", "--panel-worms-per-lab", "0",
+               "--synthetic-pairs", "0", "--no-cpd", "--weights", untrained_weights, "--out", out) == 0
+    assert "matplotlib" in capsys.readouterr().err
+    text = out.read_text()
+    assert "| NP | pairs | fdlc |" in text and "calibration.png" not in text and "--out" in text
+    assert not (tmp_path / "images").exists()
+
+
 def test_evaluate_on_worms_too_small_for_an_atlas_is_one_line(tmp_path, untrained_weights, capsys, write_corpus):
     """Worms of 3 neurons: `IndexError: too many indices for array` from the atlas built per
     lab (reference.build_atlas with no name kept)."""

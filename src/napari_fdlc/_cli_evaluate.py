@@ -14,14 +14,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FdlcError, atomic_write, check_output
+from .errors import FdlcError, atomic_write, check_output, warn
 
 
 BATCH_ROW = "colour, the lab's worms in one call"
 ADAPTED_ROW = "colour, the lab's worms in one call, colours adapted"
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
+def add_arguments(p: argparse.ArgumentParser, default_out: str = "accuracy.md") -> None:
     p.add_argument("--corpus", help="folder with worms.csv (default: ../shared/data/neuropal_corpus or $FDLC_CORPUS)")
     p.add_argument("--labs", nargs="+", default=None)
     p.add_argument("--weights", help="model path without suffix (default: shipped)")
@@ -30,7 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="worms of each lab named by the panel (default 40: every worm of the corpus's labs)")
     p.add_argument("--synthetic-pairs", type=int, default=40)
     p.add_argument("--no-cpd", action="store_true")
-    p.add_argument("--out", default="docs/accuracy.md", help="markdown report (the plot goes beside it in images/)")
+    p.add_argument("--out", default=default_out,
+                   help=f"markdown report (default {default_out}; the reliability plot goes beside it in images/)")
 
 
 def run(args) -> int:
@@ -163,17 +164,24 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
             lines.append(f"| {inp} | {t:.2f} | {100 * cov:.1f} | {100 * acc:.1f} |")
     report = "\n".join(lines)
     if out is not None:
-        _plot_reliability(calib, out.parent / "images" / "calibration.png", reliability)
+        # The plot needs matplotlib (the [test] extra); without it the report is written alone.
+        plotted = _plot_reliability(calib, out.parent / "images" / "calibration.png", reliability)
+        command = (f"fdlc evaluate --pairs-per-lab {pairs_per_lab} --panel-worms-per-lab {panel_worms_per_lab} "
+                   f"--synthetic-pairs {synthetic_pairs}{'' if with_cpd else ' --no-cpd'} --out {out}")
         with atomic_write(out, "w", encoding="utf-8") as handle:
             handle.write("# Accuracy on the annotated corpus\n\n")
-            handle.write(f"Made by `fdlc evaluate --pairs-per-lab {pairs_per_lab} --panel-worms-per-lab {panel_worms_per_lab} "
-                         f"--synthetic-pairs {synthetic_pairs}` ({minutes:.1f} min). See docs/benchmarks.md for how to read it.\n\n")
-            handle.write(report + "\n\n![reliability](images/calibration.png)\n")
+            handle.write(f"Made by `{command}` ({minutes:.1f} min). See docs/benchmarks.md for how to read it.\n\n")
+            handle.write(report + ("\n\n![reliability](images/calibration.png)\n" if plotted else "\n"))
     return report
 
 
-def _plot_reliability(calib, path: Path, reliability) -> None:
-    import matplotlib
+def _plot_reliability(calib, path: Path, reliability) -> bool:
+    """The reliability diagram as a PNG; False (and one warning line) without matplotlib."""
+    try:
+        import matplotlib
+    except ImportError:
+        warn("the reliability plot needs matplotlib (pip install matplotlib); the report is written without it")
+        return False
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -191,3 +199,4 @@ def _plot_reliability(calib, path: Path, reliability) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+    return True

@@ -25,7 +25,7 @@ def _label_parser(sub) -> None:
                    help="labelled neuron table(s) to take names from (--template a.csv b.csv, or repeated); "
                         "default: the built-in reference panel")
     p.add_argument("--no-color", "--no-colour", dest="no_colour", action="store_true", help="positions only")
-    p.add_argument("--top-k", type=int, default=3, help="number of candidates written (default 3)")
+    p.add_argument("--top-k", type=int, default=3, help="candidates written: the larger of K and 3 (default 3)")
     p.add_argument("--method", choices=METHODS, default="fdlc", help="fdlc (default) or cpd (classical baseline; needs --template)")
     p.add_argument("--weights", help="model weights (path without suffix); default: the shipped model")
     p.add_argument("--chirality", choices=CHIRALITIES, default="auto",
@@ -68,8 +68,8 @@ def _run_label(args) -> int:
 def _simulate_parser(sub) -> None:
     p = sub.add_parser("simulate", help="make synthetic worms with known correspondence from a neuron table")
     p.add_argument("table", help="source neuron table")
-    p.add_argument("--count", type=int, default=1)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--count", type=int, default=1, help="synthetic worms to make (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--out", required=True, help="output folder: <stem>_synN.csv with an 'origin' column")
     p.set_defaults(run=_run_simulate)
 
@@ -139,6 +139,8 @@ def _run_train(args) -> int:
         if value is not None:
             setattr(cfg, key, value)
     cfg.seed = args.seed if args.seed is not None else cfg.seed
+    if args.resume and args.init_from:
+        raise FdlcError("--resume continues the checkpoint at --out and --init-from starts a new run from other weights: give one")
     if args.config and not (args.out or args.resume or args.calibrate_only) and \
             model_files(cfg.out)[1].resolve() == Path(args.config).resolve():
         raise FdlcError(f"{args.config}: a new run from this checkpoint's configuration would replace the checkpoint; "
@@ -206,7 +208,8 @@ def _atlas_parser(sub) -> None:
     p = sub.add_parser("atlas", help="build the reference atlas (the built-in panel) from an annotated corpus")
     p.add_argument("--corpus", help="folder with worms.csv (default: ../shared/data/neuropal_corpus or $FDLC_CORPUS)")
     p.add_argument("--labs", nargs="+", default=None, help="labs to use (default: all)")
-    p.add_argument("--min-frequency", type=float, default=0.2, help="keep names seen in at least this fraction of worms")
+    p.add_argument("--min-frequency", type=float, default=0.2,
+                   help="keep names seen in at least this fraction of worms (default 0.2)")
     p.add_argument("--out", required=True, help="atlas CSV (the shipped one is src/napari_fdlc/data/atlas.csv)")
     p.set_defaults(run=_run_atlas)
 
