@@ -1,6 +1,17 @@
 import numpy as np
+import pytest
 
-from napari_fdlc.reference import Atlas, atlas_worm, build_atlas, generate_worm, load_atlas, load_panel
+from napari_fdlc.errors import ModelError
+from napari_fdlc.reference import (Atlas, atlas_worm, build_atlas, generate_worm, load_atlas, load_panel, make_panel,
+                                   shipped_atlas_path)
+from napari_fdlc.table import NeuronTable
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    from napari_fdlc.identify import Identifier
+
+    return Identifier.load(device="cpu")
 
 
 def test_shipped_atlas_and_panel():
@@ -51,7 +62,6 @@ def test_build_atlas_recovers_a_known_layout():
     """Worms that are rotated, mirrored (acquisition convention) and noisy copies of one layout
     give back that layout up to a similarity transform."""
     from napari_fdlc.corpus import Worm
-    from napari_fdlc.table import NeuronTable
 
     truth = atlas_worm(load_atlas())
     rng = np.random.default_rng(0)
@@ -115,3 +125,55 @@ def test_load_panel_sees_an_atlas_rebuilt_at_the_same_path(tmp_path):
     load_panel(path)
     build_atlas(worms[3:]).save(path)
     assert list(load_panel(path).atlas.names) == list(load_atlas(path).names)
+
+
+def test_an_atlas_built_from_worms_without_colour_does_not_name_by_colour(shipped):
+    """An atlas built from worms without R, G, B has no colour (not a made-up 0 ± 1): its panel
+    names a coloured test by position, not by its templates' random colours."""
+    from napari_fdlc.corpus import Worm
+
+    worms = [Worm("X", str(s), NeuronTable(generate_worm(seed=s).xyz, {}, generate_worm(seed=s).labels))
+             for s in range(10, 22)]
+    panel = make_panel(build_atlas(worms))
+    test = generate_worm(seed=3)
+    with_colour = np.mean(np.asarray(shipped.label_panel(test, panel).auto_id, dtype=object) == test.labels)
+    position_only = np.mean(np.asarray(shipped.label_panel(test, panel, use_colour=False).auto_id, dtype=object) == test.labels)
+    # once 0.09 against 0.27
+    assert with_colour >= position_only - 0.03
+
+
+def _edited_atlas(tmp_path, edit=None, header=None):
+    lines = shipped_atlas_path().read_text().splitlines()
+    import io
+
+    import pandas as pd
+
+    df = pd.read_csv(io.StringIO("\n".join(lines[1:])))
+    if edit:
+        edit(df)
+    path = tmp_path / "atlas.csv"
+    with open(path, "w", encoding="utf-8") as handle:
+        handle.write((header if header is not None else lines[0]) + "\n")
+        df.to_csv(handle, index=False)
+    return path
+
+
+@pytest.mark.parametrize("column", ["R", "G_sd", "frequency", "x_sd", "y_um"])
+def test_load_atlas_refuses_a_value_that_is_not_a_finite_number(tmp_path, column):
+    """An atlas file edited by hand with an empty cell is refused in one line naming the atlas,
+    not loaded to fail later in numpy or to blame the test's positions."""
+    def blank(df):
+        df.loc[5, column] = np.nan
+
+    path = _edited_atlas(tmp_path, blank)
+    with pytest.raises(ModelError, match="atlas"):
+        load_atlas(path)
+
+
+@pytest.mark.parametrize("scale", ["0", "nan", "-1.2"])
+def test_load_atlas_refuses_a_worm_scale_that_is_not_positive(tmp_path, scale):
+    """A worm scale of 0, NaN or below 0 in the atlas's header is refused in one line."""
+    header = shipped_atlas_path().read_text().splitlines()[0].split("; worm scale")[0] + f"; worm scale {scale}"
+    path = _edited_atlas(tmp_path, header=header)
+    with pytest.raises(ModelError, match="atlas"):
+        load_atlas(path)

@@ -22,8 +22,27 @@ from .table import NeuronTable
 IDENTITY_CHANNELS = ("R", "G", "B")
 
 
+def read_channels(table: NeuronTable, channels: tuple[str, ...] = IDENTITY_CHANNELS) -> tuple[str, ...]:
+    """The ``channels`` that ``table`` has a reading of: a column that is there and does not
+    hold one value for every neuron. A channel not acquired and written as 0 would rank every
+    neuron as the median colour: evidence, and wrong (a worm named by three such columns lost
+    half its names against position only)."""
+    return tuple(c for c in channels if c in table.colours and _varies(table.colours[c]))
+
+
+def has_colour(table: NeuronTable) -> bool:
+    """Whether ``table`` has a reading of each of R, G and B (what the model takes as input)."""
+    return len(read_channels(table)) == len(IDENTITY_CHANNELS)
+
+
+def _varies(values: np.ndarray) -> bool:
+    finite = values[np.isfinite(values)]
+    return len(finite) < 3 or bool(np.ptp(finite) > 0)  # one or two neurons: nothing to tell
+
+
 def shared_channels(a: NeuronTable, b: NeuronTable) -> tuple[str, ...]:
-    return tuple(c for c in IDENTITY_CHANNELS if c in a.colours and c in b.colours)
+    theirs = read_channels(b)
+    return tuple(c for c in read_channels(a) if c in theirs)
 
 
 def normal_scores(table: NeuronTable, channels: tuple[str, ...]) -> np.ndarray:

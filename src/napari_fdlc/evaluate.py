@@ -101,15 +101,12 @@ def mirrored_relative_to(atlas, worm: NeuronTable) -> bool:
     return bool(mirrored_by_names(atlas.names, atlas.mean, worm, min_names=4))
 
 
-FLAT_UM = 1.0  # named neurons thinner than this (SD across their plane) have no handedness
-
-
 def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
     """"same" or "mirrored": a labelled worm's handedness relative to a labelled ``reference``
     or, without one, to the built-in atlas — the value of ``--chirality`` for recordings made
     like it. Refuses a worm with fewer than 6 names in common (one line that says so)."""
     from .errors import FdlcError
-    from .geometry import canonical_frame, mirrored_by_names
+    from .geometry import FLAT_UM, canonical_frame, mirrored_by_names, thickness_um
     from .reference import load_atlas
 
     if reference is not None and not reference.named.any():
@@ -121,7 +118,7 @@ def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
         names, xyz = reference.labels, canonical_frame(reference.xyz)[0]
     named = worm.xyz[worm.named]
     if len(named) >= 3:
-        depth = float(np.linalg.svd(named - named.mean(axis=0), compute_uv=False)[-1] / np.sqrt(len(named)))
+        depth = thickness_um(named)
         if depth < FLAT_UM:  # a mirror image of a flat worm is the worm itself turned over
             raise FdlcError(f"{worm.source}: the named neurons lie in a plane ({depth:.2f} µm thick), so their "
                             "handedness cannot be told; check the z positions (voxel size in z)")

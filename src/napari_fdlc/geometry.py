@@ -13,7 +13,7 @@ never made mirror-invariant: a mirror swaps left and right neurons.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -95,18 +95,34 @@ def _levelling(points: np.ndarray) -> np.ndarray:
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
+FLAT_UM = 1.0  # neurons thinner than this (SD across their plane) have no handedness; corpus worms: 3.6 or more
+
+
+def thickness_um(xyz: np.ndarray) -> float:
+    """The SD of the positions across their best-fitting plane: about 0 for a table whose z was
+    lost (a projection), where a worm and its mirror image are the same points."""
+    xyz = np.asarray(xyz, float)
+    if len(xyz) < 3:
+        return 0.0
+    return float(np.linalg.svd(xyz - xyz.mean(axis=0), compute_uv=False)[-1] / np.sqrt(len(xyz)))
+
+
 def fit_affine(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None, ridge: float = 1e-3) -> np.ndarray:
     """Weighted least-squares affine map ``dst ≈ [src, 1] @ A`` (A is 4×3), regularised toward
     a pure translation so that a handful of matches cannot produce a wild shear."""
     src = np.asarray(src, float)
     dst = np.asarray(dst, float)
     w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
-    homog = np.hstack([src, np.ones((len(src), 1))])
+    # Solved about the points' weighted means: the normal equations of coordinates far from the
+    # origin (a microscope stage's, ~1e6 µm) lose every digit a neuron's position needs.
+    mu_s, mu_d = (np.average(a, axis=0, weights=w) if w.sum() > 0 else a.mean(axis=0) for a in (src, dst))
+    homog = np.hstack([src - mu_s, np.ones((len(src), 1))])
     lhs = (homog * w[:, None]).T @ homog
-    rhs = (homog * w[:, None]).T @ dst
+    rhs = (homog * w[:, None]).T @ (dst - mu_d)
     prior = np.vstack([np.eye(3), np.zeros((1, 3))])
     reg = ridge * max(w.sum(), 1.0) * np.diag([1, 1, 1, 0])
-    return np.linalg.solve(lhs + reg + 1e-9 * np.eye(4), rhs + reg @ prior)
+    linear, shift = np.split(np.linalg.solve(lhs + reg + 1e-9 * np.eye(4), rhs + reg @ prior), [3])
+    return np.vstack([linear, shift + mu_d - mu_s @ linear])
 
 
 def apply_affine(xyz: np.ndarray, affine: np.ndarray) -> np.ndarray:
@@ -164,14 +180,17 @@ class Warp:
     carried onto the reference's pose, not only turned and scaled."""
 
     affine: np.ndarray  # 4×3, see geometry.apply_affine
-    centres: np.ndarray | None = None  # (K, 3) recording µm
+    centres: np.ndarray | None = None  # (K, 3) recording µm less ``origin``
     coef: np.ndarray | None = None  # (K, 3)
     sigma: float = 12.0
+    # The displacement's kernels are evaluated about this point (the fitted neurons' mean):
+    # squared distances expanded far from the origin lose their digits to cancellation.
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __call__(self, xyz: np.ndarray) -> np.ndarray:
         out = apply_affine(xyz, self.affine)
         if self.centres is not None and len(self.centres):
-            out = out + _gauss(xyz, self.centres, self.sigma) @ self.coef
+            out = out + _gauss(xyz - self.origin, self.centres, self.sigma) @ self.coef
         return out
 
 
@@ -199,6 +218,8 @@ def fit_warp(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, sigma: float
         return Warp(affine, sigma=sigma)
     x, w = src[keep], weights[keep]
     residual = dst[keep] - apply_affine(x, affine)
+    origin = x.mean(axis=0)
+    x = x - origin
     centres = _grid_centres(x, sigma / 2)
     basis = _gauss(x, centres, sigma)  # (K, C)
     # min sum_k w_k |basis_k c - r_k|^2 + smoothness c' G c, G the kernel between centres
@@ -209,7 +230,7 @@ def fit_warp(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, sigma: float
 
     factor = torch.linalg.cholesky(torch.from_numpy(system))
     coef = torch.cholesky_solve(torch.from_numpy((basis.T * w) @ residual), factor).numpy()
-    return Warp(affine, centres, coef, sigma)
+    return Warp(affine, centres, coef, sigma, origin)
 
 
 GRID_CUBES = 1e6  # above it _grid_centres counts occupied cubes only

@@ -31,8 +31,8 @@ import numpy as np
 from . import colour as colour_model
 from ._blas import one_blas_thread
 from .errors import FdlcError, ModelError, warn
-from .geometry import (CHIRALITIES, apply_affine, canonical_frame, compose_affine, fit_affine, fit_warp,
-                       mirrored_by_names, position_evidence)
+from .geometry import (CHIRALITIES, FLAT_UM, apply_affine, canonical_frame, compose_affine, fit_affine, fit_warp,
+                       mirrored_by_names, position_evidence, thickness_um)
 from .match import Labelling, assign_log, check_fixed, make_labelling, name_probabilities
 from .register import (HEAD_WINDOW, Placement, body_reach, head_window, posterior, register, smaller_worm_factor,
                        template_mixture)
@@ -502,7 +502,7 @@ class Identifier:
     def _takes_colour(self, tables: list[NeuronTable], use_colour: bool) -> bool:
         """Whether the model gets colour as an input for these tables (see _model_colours)."""
         return bool(use_colour and self.model.config.get("colour_channels")) and all(
-            all(c in t.colours for c in colour_model.IDENTITY_CHANNELS) for t in tables)
+            colour_model.has_colour(t) for t in tables)
 
     def _calibrate(self, log_p: np.ndarray) -> np.ndarray:
         """Temperature (fitted on training labs) on the final answer only — not on the
@@ -871,6 +871,10 @@ class Identifier:
             raise FdlcError(f"{test.source or 'the test'}: no neurons to name")
         if not all(np.isfinite(t.xyz).all() for t in (test, *templates)):
             raise FdlcError("a neuron position is not a finite number")
+        if len(test) >= FEW_NEURONS and (depth := thickness_um(test.xyz)) < FLAT_UM:
+            # A worm and its mirror image are then the same points: every left/right name a guess.
+            raise FdlcError(f"{test.source or 'the test'}: the neurons lie in a plane ({depth:.2f} µm thick), so left "
+                            "cannot be told from right; a 3D table is needed (check the z positions and the voxel size in z)")
         return use_colour and any(colour_model.shared_channels(t, test) for t in templates)
 
 
@@ -879,6 +883,10 @@ def colour_note(test: NeuronTable, references: list[NeuronTable], use_colour: bo
     ``references`` (templates, or the panel's), so it is named by position only; else None."""
     if not use_colour or any(colour_model.shared_channels(t, test) for t in references):
         return None
+    flat = [c for c in colour_model.IDENTITY_CHANNELS if c in test.colours and c not in colour_model.read_channels(test)]
+    if flat:
+        return (f"{test.source}: {', '.join(flat)} hold one value for every neuron (no colour reading): "
+                "identifying by position only")
     if any(c in test.colours for c in colour_model.IDENTITY_CHANNELS):
         return f"{test.source}: no colour channel in common with the template(s): identifying by position only"
     return f"{test.source}: no colour column (R, G, B): identifying by position only (--no-color says it is meant)"
@@ -897,7 +905,7 @@ def smaller_worm_note(test: NeuronTable, result: Labelling) -> str | None:
 def can_adapt_colours(tests: list[NeuronTable], use_colour: bool = True) -> bool:
     """Whether :meth:`Identifier.label_panel_many` can measure the panel's colours on these
     tests: with colour, and ``ADAPT_MIN_TESTS`` of them or more having R, G and B."""
-    coloured = [t for t in tests if all(c in t.colours for c in colour_model.IDENTITY_CHANNELS)]
+    coloured = [t for t in tests if colour_model.has_colour(t)]
     return use_colour and len(coloured) >= ADAPT_MIN_TESTS
 
 

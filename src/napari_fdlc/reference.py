@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .colour import IDENTITY_CHANNELS, normal_scores
+from .colour import IDENTITY_CHANNELS, has_colour, normal_scores
 from .errors import FdlcError, ModelError, atomic_write
 from .geometry import canonical_frame
 from .register import Mixture, Placement, posterior, register
@@ -64,7 +64,7 @@ class Atlas:
     names: np.ndarray  # (K,)
     mean: np.ndarray  # (K, 3) µm, common frame (body axis x)
     sd: np.ndarray  # (K, 3) µm
-    colour: np.ndarray  # (K, 3) mean normal scores of R, G, B
+    colour: np.ndarray  # (K, 3) mean normal scores of R, G, B; NaN: built from worms without colour
     colour_sd: np.ndarray  # (K, 3)
     frequency: np.ndarray  # (K,) fraction of worms that name it
     worms: int = 0
@@ -72,14 +72,19 @@ class Atlas:
     # A median corpus worm in µm is this many times the atlas (Procrustes shrinks the atlas)
     worm_scale: float = 1.0
 
+    @property
+    def has_colour(self) -> bool:
+        return bool(np.isfinite(self.colour).all())
+
     def mixture(self, stretch_z: bool = True) -> Mixture:
         """The atlas as a mixture for :func:`napari_fdlc.register.register`: each name's spread
         plus ``_REGISTRATION_SD`` (segmentation error, residual pose), weighted by how often it
         is named; the scale is free within bounds (the atlas is smaller than real worms); a
         test showing part of the head is also tried at offsets along the body axis; with
         ``stretch_z``, the test is stretched along its own z within ``ATLAS_Z_SCALE_RANGE``."""
+        colour, colour_var = (self.colour, self.colour_sd**2) if self.has_colour else (None, None)
         return Mixture(self.mean, self.sd**2 + _REGISTRATION_SD**2, np.log(np.maximum(self.frequency, 1e-6)),
-                       self.colour, self.colour_sd**2, scale_range=(0.8, 1.25), partial_views=True,
+                       colour, colour_var, scale_range=(0.8, 1.25), partial_views=True,
                        partial_view_scale=1 / self.worm_scale,
                        z_scale_range=ATLAS_Z_SCALE_RANGE if stretch_z else (1.0, 1.0))
 
@@ -104,7 +109,7 @@ class Atlas:
         index = {n: k for k, n in enumerate(self.names)}
         seen: dict[int, list] = {}
         for table, given in zip(tables, names):
-            if not all(c in table.colours for c in IDENTITY_CHANNELS):
+            if not has_colour(table):
                 continue
             scores = normal_scores(table, IDENTITY_CHANNELS)
             for row, name in enumerate(given):
@@ -142,6 +147,10 @@ class Atlas:
             counts, _, scale = header.partition("; worm scale ")
             worms = int(counts.split(":")[1].split()[0])
             labs = tuple(counts.split(" of ")[1].split())
+            _check_numbers(df, path)
+            worm_scale = float(scale) if scale else 1.0
+            if not (np.isfinite(worm_scale) and worm_scale > 0):
+                raise ModelError(f"{path}: not a valid atlas file (worm scale {scale.strip()}: a positive number is needed)")
             return cls(
                 df["name"].to_numpy(object),
                 df[["x_um", "y_um", "z_um"]].to_numpy(float),
@@ -151,10 +160,26 @@ class Atlas:
                 df["frequency"].to_numpy(float),
                 worms,
                 labs,
-                float(scale) if scale else 1.0,
+                worm_scale,
             )
         except (OSError, KeyError, ValueError, IndexError) as exc:
             raise ModelError(f"{path}: not a valid atlas file ({exc})") from None
+
+
+def _check_numbers(df: pd.DataFrame, path: Path) -> None:
+    """An atlas file edited by hand: every position, spread and frequency a number (spreads and
+    frequencies not negative), the colours numbers too or all empty (an atlas without colour)."""
+    colour = list(IDENTITY_CHANNELS) + [f"{c}_sd" for c in IDENTITY_CHANNELS]
+    kept = [c for c in ("x_um", "y_um", "z_um", "x_sd", "y_sd", "z_sd", "frequency") if c in df]
+    if all(c in df for c in colour) and not df[colour].isna().all().all():
+        kept += colour
+    for column in kept:
+        values = pd.to_numeric(df[column], errors="coerce").to_numpy(float)
+        bad = ~np.isfinite(values) | ((values < 0) if column.endswith("_sd") or column == "frequency" else False)
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise ModelError(f"{path}: not a valid atlas file (name {df['name'].iloc[row]!r}, column {column}: "
+                             f"{df[column].iloc[row]!r} is not {'a number of 0 or more' if column.endswith('_sd') or column == 'frequency' else 'a number'})")
 
 
 def _similarity(src: np.ndarray, dst: np.ndarray, allow_mirror: bool):
@@ -188,7 +213,7 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
         raise FdlcError("no worms to build an atlas from")
     canon = [canonical_frame(t.xyz)[0] for t in tables]
     colours = [
-        normal_scores(t, IDENTITY_CHANNELS) if all(c in t.colours for c in IDENTITY_CHANNELS) else None
+        normal_scores(t, IDENTITY_CHANNELS) if has_colour(t) else None
         for t in tables
     ]
     reference = int(np.argmax([t.named.sum() for t in tables]))
@@ -232,14 +257,17 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
                         f"{MIN_ATLAS_NAMES} names (give worms with a label column)")
     pos = [np.array(stats[n]["pos"]) for n in names]
     col = [np.array(stats[n]["col"]).reshape(-1, 3) for n in names]
+    # No worm with colour: none in the atlas (NaN), not a made-up 0 ± 1 that would give its
+    # panel's templates random colours.
+    coloured = any(c is not None for c in colours)
     mean_pos = np.array([p.mean(0) for p in pos])
     centre = np.median(mean_pos, axis=0)
     return Atlas(
         names=np.array(names, dtype=object),
         mean=mean_pos - centre,
         sd=np.array([p.std(0) if len(p) > 1 else np.full(3, 2.0) for p in pos]),
-        colour=np.array([c.mean(0) if len(c) else np.zeros(3) for c in col]),
-        colour_sd=np.array([c.std(0) if len(c) > 1 else np.ones(3) for c in col]),
+        colour=np.array([c.mean(0) if len(c) else np.zeros(3) for c in col]) if coloured else np.full((len(names), 3), np.nan),
+        colour_sd=np.array([c.std(0) if len(c) > 1 else np.ones(3) for c in col]) if coloured else np.full((len(names), 3), np.nan),
         frequency=np.array([len(p) / used for p in pos]),
         worms=used,
         labs=tuple(sorted({w.lab for w in worms})),
@@ -259,7 +287,7 @@ def atlas_worm(atlas: Atlas, rng: np.random.Generator | None = None, keep_fracti
         colour = colour + rng.normal(size=colour.shape) * atlas.colour_sd * spread
         if keep_fraction is not None:
             keep = rng.random(len(keep)) < np.minimum(1.0, atlas.frequency / keep_fraction)
-    colours = {c: colour[keep, i] for i, c in enumerate(IDENTITY_CHANNELS)}
+    colours = {c: colour[keep, i] for i, c in enumerate(IDENTITY_CHANNELS)} if atlas.has_colour else {}
     return NeuronTable(xyz[keep], colours, atlas.names[keep], source="atlas")
 
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .colour import IDENTITY_CHANNELS, normal_scores
+from .colour import IDENTITY_CHANNELS, has_colour, normal_scores, read_channels
 from .geometry import canonical_frame
 from .table import YOUNG_ADULT_SPACING_UM, NeuronTable, neuron_spacing
 
@@ -131,7 +131,7 @@ def template_mixture(template: NeuronTable) -> Mixture:
     """A labelled (or unlabelled) worm as a mixture in its canonical frame."""
     mean = canonical_frame(template.xyz)[0]
     colour = colour_var = None
-    if all(c in template.colours for c in IDENTITY_CHANNELS):
+    if has_colour(template):
         colour = normal_scores(template, IDENTITY_CHANNELS)
         colour_var = np.full_like(colour, _TEMPLATE_COLOUR_SD**2)
     return Mixture(mean, np.full_like(mean, TEMPLATE_SD**2), np.zeros(len(mean)), colour, colour_var,
@@ -266,7 +266,7 @@ def _component_terms(test: NeuronTable, mixture: Mixture, use_colour: bool):
     var = mixture.var
     log_weight = mixture.log_weight - 0.5 * np.log(var).sum(axis=1)
     colour_term = 0.0
-    present = [i for i, c in enumerate(IDENTITY_CHANNELS) if c in test.colours]
+    present = [IDENTITY_CHANNELS.index(c) for c in read_channels(test)]
     if use_colour and mixture.colour is not None and present:
         # A channel the test lacks is left out (each channel is its own factor): without B,
         # held out, the panel kept 25.5 % of SF's names instead of 10.1 (benchmarks/robustness.py).

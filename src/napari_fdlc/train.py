@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .colour import IDENTITY_CHANNELS, normal_scores
+from .colour import IDENTITY_CHANNELS, has_colour, normal_scores
 from .corpus import LABS, Worm, load_corpus
 from .errors import FdlcError, ModelError, atomic_write
 from .evaluate import Scores, mirrored_relative_to
@@ -276,7 +276,7 @@ def _example(a, b, target, negative, template, test):
 
 
 def _colour_features(table: NeuronTable) -> np.ndarray | None:
-    if not all(c in table.colours for c in IDENTITY_CHANNELS):
+    if not has_colour(table):
         return None
     return normal_scores(table, IDENTITY_CHANNELS).astype(np.float32)
 
