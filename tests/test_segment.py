@@ -258,6 +258,19 @@ def test_bundled_sample():
 # ----- fdlc segment ---------------------------------------------------------------------------
 
 
+def test_cli_segment_reports_progress_on_a_long_stack_unless_quiet(tmp_path, rendered, capsys, monkeypatch):
+    """A stack above _LONG_VOXELS prints its steps with percentages; --quiet prints none."""
+    import napari_fdlc._cli_segment as cli_segment
+
+    monkeypatch.setattr(cli_segment, "_LONG_VOXELS", 1)
+    path = tmp_path / "worm.ome.tif"
+    write_tiff(path, rendered[0])
+    assert main(["segment", str(path), "--out", str(tmp_path / "a.csv")]) == 0
+    assert "100% " in capsys.readouterr().err
+    assert main(["segment", str(path), "--quiet", "--out", str(tmp_path / "b.csv")]) == 0
+    assert "%" not in capsys.readouterr().err
+
+
 def test_cli_segment_writes_a_table(tmp_path, rendered, capsys):
     stack, truth = rendered
     path = tmp_path / "worm.ome.tif"

@@ -69,12 +69,12 @@ def segment_recording(args: argparse.Namespace, path: str, prog: str, check=None
                    colour_split=not args.no_colour_split)
     try:
         if len(series) == 1:
-            progress = None
-            if not args.quiet and series.n_channels * z * y * x > _LONG_VOXELS:
-                def progress(fraction: float, message: str) -> None:
-                    print(f"{prog}: {100 * fraction:3.0f}% {message} ({time.monotonic() - start:.1f} s)",
-                          file=sys.stderr, flush=True)
-            tables = [segment_stack(series.volume(0), progress=progress, **options)]
+            def report(fraction: float, message: str) -> None:
+                print(f"{prog}: {100 * fraction:3.0f}% {message} ({time.monotonic() - start:.1f} s)",
+                      file=sys.stderr, flush=True)
+
+            long = not args.quiet and series.n_channels * z * y * x > _LONG_VOXELS
+            tables = [segment_stack(series.volume(0), progress=report if long else None, **options)]
         else:
             def volumes_done(done: int, total: int) -> None:
                 if not args.quiet:
