@@ -1,11 +1,20 @@
 """The scoring used by `fdlc evaluate` and benchmarks/accuracy.py."""
 
-import numpy as np
+import warnings
 
+import numpy as np
+import pytest
+
+from napari_fdlc.cli import main
+from napari_fdlc.errors import FdlcError
 from napari_fdlc.evaluate import Scores, coverage_curve, expected_calibration_error, mirrored_relative_to
 from napari_fdlc.match import make_labelling
-from napari_fdlc.reference import atlas_worm, load_atlas
+from napari_fdlc.reference import atlas_worm, generate_worm, load_atlas
 from napari_fdlc.table import NeuronTable
+
+
+def run(*args) -> int:
+    return main([str(a) for a in args])
 
 
 def test_calibration_error_and_coverage():
@@ -35,3 +44,49 @@ def test_mirrored_relative_to_the_atlas():
     turned = worm.xyz @ np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]]).T  # a proper rotation
     assert not mirrored_relative_to(atlas, NeuronTable(turned, labels=worm.labels))
     assert mirrored_relative_to(atlas, NeuronTable(turned * [1, 1, -1], labels=worm.labels))
+
+
+def test_calibration_bins_put_a_confidence_on_an_edge_in_the_bin_above():
+    """A confidence on a bin edge goes to the bin above: np.linspace's 0.30000000000000004 once
+    put 0.3 (and 0.6, 0.7) in the bin below, so conf (0.3, 0.2), correct (1, 0) scored 0.25, not 0.45."""
+    from napari_fdlc.evaluate import expected_calibration_error, reliability
+
+    conf, correct = np.array([0.3, 0.2]), np.array([1.0, 0.0])
+    assert np.isclose(expected_calibration_error(conf, correct), 0.45)
+    assert [b[2] for b in reliability(conf, correct)] == [1, 1]
+
+
+def test_evaluate_on_a_lab_of_one_worm_prints_no_numpy_warning(tmp_path, write_corpus, untrained_weights):
+    """A lab of one worm has no pair: its coverage is NaN without numpy's 'Mean of empty slice'."""
+    corpus = write_corpus(tmp_path / "corpus", {"NP": [generate_worm(seed=1)],
+                                                "EY": [generate_worm(seed=2), generate_worm(seed=3)]})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code = run("evaluate", "--corpus", corpus, "--labs", "NP", "--pairs-per-lab", "2", "--panel-worms-per-lab", "0",
+                   "--synthetic-pairs", "0", "--no-cpd", "--weights", untrained_weights, "--out", tmp_path / "a.md")
+    assert code in (0, 2)
+    numpy_warnings = [f"{w.filename}:{w.lineno}: {w.message}" for w in caught if issubclass(w.category, RuntimeWarning)]
+    assert not numpy_warnings, numpy_warnings
+
+
+def test_evaluate_on_a_corpus_worm_without_names_names_its_file(tmp_path, write_corpus, untrained_weights, capsys):
+    """A corpus worm without names stops `fdlc evaluate` with a line naming its file."""
+    worms = [generate_worm(seed=s) for s in (1, 2, 3)]
+    worms[0] = NeuronTable(worms[0].xyz, worms[0].colours)
+    corpus = write_corpus(tmp_path / "corpus", {"NP": worms, "EY": [generate_worm(seed=4), generate_worm(seed=5)]})
+    run("evaluate", "--corpus", corpus, "--labs", "NP", "--pairs-per-lab", "6", "--panel-worms-per-lab", "0",
+        "--synthetic-pairs", "0", "--no-cpd", "--weights", untrained_weights, "--out", tmp_path / "a.md")
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "w0.csv" in err, err
+
+
+def test_baseline_labelling_against_an_unnamed_template_is_one_line():
+    """The floor and CPD refuse a template without names in one line naming it, as fdlc does
+    (not an IndexError)."""
+    from napari_fdlc.baselines import floor_match
+    from napari_fdlc.evaluate import baseline_labelling
+
+    worm = generate_worm(seed=1)
+    template = NeuronTable(worm.xyz, worm.colours, source="unnamed.csv")
+    with pytest.raises(FdlcError, match="unnamed.csv"):
+        baseline_labelling(floor_match, generate_worm(seed=2), [template], False)

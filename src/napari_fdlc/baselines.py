@@ -18,7 +18,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
 from ._blas import one_blas_thread
-from .colour import IDENTITY_CHANNELS
+from .colour import shared_channels
 from .errors import FdlcError
 from .geometry import FLOOR_FLIPS, ORIENTATIONS, canonical_frame
 from .table import NeuronTable
@@ -51,7 +51,7 @@ def floor_match(template: NeuronTable, test: NeuronTable, use_colour: bool = Fal
     b, _, _ = canonical_frame(test.xyz)
     b = b * _rms(a) / _rms(b)
     colour_cost = 0.0
-    channels = [c for c in IDENTITY_CHANNELS if c in template.colours and c in test.colours]
+    channels = list(shared_channels(template, test))  # a channel of one value is no reading (0 / 0 below)
     if use_colour and channels:
         def z(t):
             v = t.colour_matrix(channels)

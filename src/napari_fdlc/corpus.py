@@ -8,6 +8,7 @@ the checkout, or ``$FDLC_CORPUS``).
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,10 +30,12 @@ class Worm:
 def default_corpus_path() -> Path | None:
     """``$FDLC_CORPUS``, else ``../shared/data/neuropal_corpus`` relative to the working directory
     or to the source checkout; None when none exists."""
-    candidates = []
-    if os.environ.get("FDLC_CORPUS"):
-        candidates.append(Path(os.environ["FDLC_CORPUS"]))
-    candidates.append(Path.cwd().parent / "shared/data/neuropal_corpus")
+    if os.environ.get("FDLC_CORPUS"):  # asked for: that one or none (not another one found elsewhere)
+        path = Path(os.environ["FDLC_CORPUS"])
+        if not (path / "worms.csv").exists():
+            raise FdlcError(f"FDLC_CORPUS={path}: no worms.csv there (set it to the corpus folder, or unset it)")
+        return path
+    candidates = [Path.cwd().parent / "shared/data/neuropal_corpus"]
     candidates.append(Path(__file__).resolve().parents[3] / "shared/data/neuropal_corpus")
     for path in candidates:
         if (path / "worms.csv").exists():
@@ -48,7 +51,11 @@ def load_corpus(path: str | os.PathLike | None = None, labs: tuple[str, ...] | l
         )
     index_path = path / "worms.csv"
     try:
-        index = pd.read_csv(index_path, dtype=str, keep_default_na=False)
+        # index_col=False: rows ending in a comma must not shift every column under the header
+        # (pandas warns that the empty last field is dropped: it is meant)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", pd.errors.ParserWarning)
+            index = pd.read_csv(index_path, dtype=str, keep_default_na=False, index_col=False)
     except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError) as exc:
         raise FdlcError(f"{index_path}: not a readable CSV ({str(exc).splitlines()[0]})") from None
     missing = [c for c in ("dataset", "worm") if c not in index.columns]
@@ -59,9 +66,21 @@ def load_corpus(path: str | os.PathLike | None = None, labs: tuple[str, ...] | l
     unknown = sorted(set(labs or ()) - set(index["dataset"]))
     if unknown:
         raise FdlcError(f"no worms of lab(s) {', '.join(unknown)} in the corpus (labs: {', '.join(sorted(set(index['dataset'])))})")
+    index["dataset"], index["worm"] = index["dataset"].str.strip(), index["worm"].str.strip()
+    blank = (index["dataset"] == "") | (index["worm"] == "")
+    if blank.any():
+        raise FdlcError(f"{index_path}, line {int(blank.to_numpy().argmax()) + 2}: a row without its dataset or worm; "
+                        "fill it in or remove it")
+    repeated = index.duplicated(["dataset", "worm"])
+    if repeated.any():
+        row = index[repeated].iloc[0]
+        raise FdlcError(f"{index_path}: {row['dataset']}/{row['worm']} is listed more than once; remove the repeated row")
     worms = []
     for row in index.itertuples():
         if labs is not None and row.dataset not in labs:
             continue
-        worms.append(Worm(row.dataset, row.worm, read_table(path / row.dataset / f"{row.worm}.csv")))
+        file = path / row.dataset / f"{row.worm}.csv"
+        if not file.is_file():
+            raise FdlcError(f"{file}: no such file, though {index_path} lists it; add the file or remove its row")
+        worms.append(Worm(row.dataset, row.worm, read_table(file)))
     return worms

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import FdlcError
 from .match import Labelling, make_labelling, name_probabilities
 from .table import NeuronTable
 
@@ -51,8 +52,7 @@ def expected_calibration_error(conf: np.ndarray, correct: np.ndarray, bins: int 
     """Mean |accuracy - confidence| over equal-width confidence bins, weighted by bin size."""
     if len(conf) == 0:
         return float("nan")
-    edges = np.linspace(0, 1, bins + 1)
-    idx = np.clip(np.digitize(conf, edges[1:-1]), 0, bins - 1)
+    idx = _bin_of(conf, bins)
     ece = 0.0
     for b in range(bins):
         mask = idx == b
@@ -63,15 +63,22 @@ def expected_calibration_error(conf: np.ndarray, correct: np.ndarray, bins: int 
 
 def reliability(conf: np.ndarray, correct: np.ndarray, bins: int = 10) -> list[tuple[float, float, int]]:
     """(mean confidence, accuracy, count) per confidence bin."""
-    edges = np.linspace(0, 1, bins + 1)
-    idx = np.clip(np.digitize(conf, edges[1:-1]), 0, bins - 1)
+    idx = _bin_of(conf, bins)
     return [(float(conf[idx == b].mean()), float(correct[idx == b].mean()), int((idx == b).sum()))
             for b in range(bins) if (idx == b).any()]
+
+
+def _bin_of(conf: np.ndarray, bins: int) -> np.ndarray:
+    """Each confidence's bin, [k / bins, (k + 1) / bins), the last closed: a confidence on an edge
+    goes to the bin above (np.linspace's 0.30000000000000004 put 0.3 in the one below)."""
+    return np.clip(np.floor(np.asarray(conf, float) * bins).astype(int), 0, bins - 1)
 
 
 def coverage_curve(conf: np.ndarray, correct: np.ndarray, thresholds=(0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 0.99)):
     """(threshold, coverage, accuracy of the labels kept) for the confidence slider."""
     out = []
+    if len(conf) == 0:  # nothing scored (a lab of one worm has no pair)
+        return [(t, float("nan"), float("nan")) for t in thresholds]
     for t in thresholds:
         kept = conf >= t
         out.append((t, float(kept.mean()), float(correct[kept].mean()) if kept.any() else float("nan")))
@@ -79,6 +86,9 @@ def coverage_curve(conf: np.ndarray, correct: np.ndarray, thresholds=(0.0, 0.05,
 
 
 def baseline_labelling(match_fn, test: NeuronTable, templates: list[NeuronTable], use_colour: bool) -> Labelling:
+    unnamed = [t for t in templates if not t.names]
+    if unnamed:
+        raise FdlcError(f"{unnamed[0].source or 'a template'}: no named neurons; a template needs names to give them")
     per_template = [(match_fn(t, test, use_colour)[:, :-1], t.labels) for t in templates]
     names, probs = name_probabilities(per_template)
     return make_labelling(names, probs)
@@ -105,7 +115,6 @@ def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
     """"same" or "mirrored": a labelled worm's handedness relative to a labelled ``reference``
     or, without one, to the built-in atlas — the value of ``--chirality`` for recordings made
     like it. Refuses a worm with fewer than 6 names in common (one line that says so)."""
-    from .errors import FdlcError
     from .geometry import FLAT_UM, canonical_frame, mirrored_by_names, thickness_um
     from .reference import load_atlas
 

@@ -865,8 +865,9 @@ class Identifier:
             raise ModelError("no model loaded")
         if not templates:
             raise FdlcError("no template given")
-        if not all(t.names for t in templates):
-            raise FdlcError("a template without named neurons: a template needs names to give them")
+        unnamed = [t for t in templates if not t.names]
+        if unnamed:
+            raise FdlcError(f"{unnamed[0].source or 'a template'}: no named neurons; a template needs names to give them")
         if len(test) == 0:
             raise FdlcError(f"{test.source or 'the test'}: no neurons to name")
         if not all(np.isfinite(t.xyz).all() for t in (test, *templates)):

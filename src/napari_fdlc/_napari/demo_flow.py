@@ -36,7 +36,11 @@ def run_demo(
     import napari
 
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FdlcError(f"{out_dir}: cannot make the demo's output folder there ({exc.strerror or exc}); "
+                        "move what is in the way or run from another folder") from None
     old_env = os.environ.get("FDLC_SESSION_DIR")
     if headless:
         os.environ["FDLC_SESSION_DIR"] = str(out_dir / "sessions")
