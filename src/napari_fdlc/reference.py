@@ -175,11 +175,12 @@ def _check_numbers(df: pd.DataFrame, path: Path) -> None:
         kept += colour
     for column in kept:
         values = pd.to_numeric(df[column], errors="coerce").to_numpy(float)
-        bad = ~np.isfinite(values) | ((values < 0) if column.endswith("_sd") or column == "frequency" else False)
+        spread = column.endswith("_sd") or column == "frequency"
+        bad = ~np.isfinite(values) | ((values < 0) if spread else False)
         if bad.any():
             row = int(np.flatnonzero(bad)[0])
             raise ModelError(f"{path}: not a valid atlas file (name {df['name'].iloc[row]!r}, column {column}: "
-                             f"{df[column].iloc[row]!r} is not {'a number of 0 or more' if column.endswith('_sd') or column == 'frequency' else 'a number'})")
+                             f"{df[column].iloc[row]!r} is not {'a number of 0 or more' if spread else 'a number'})")
 
 
 def _similarity(src: np.ndarray, dst: np.ndarray, allow_mirror: bool):
@@ -257,17 +258,19 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
                         f"{MIN_ATLAS_NAMES} names (give worms with a label column)")
     pos = [np.array(stats[n]["pos"]) for n in names]
     col = [np.array(stats[n]["col"]).reshape(-1, 3) for n in names]
-    # No worm with colour: none in the atlas (NaN), not a made-up 0 ± 1 that would give its
-    # panel's templates random colours.
-    coloured = any(c is not None for c in colours)
+    if any(c is not None for c in colours):
+        colour = np.array([c.mean(0) if len(c) else np.zeros(3) for c in col])
+        colour_sd = np.array([c.std(0) if len(c) > 1 else np.ones(3) for c in col])
+    else:  # no worm with colour: none in the atlas, not a made-up 0 ± 1 (its panel's colours random)
+        colour = colour_sd = np.full((len(names), 3), np.nan)
     mean_pos = np.array([p.mean(0) for p in pos])
     centre = np.median(mean_pos, axis=0)
     return Atlas(
         names=np.array(names, dtype=object),
         mean=mean_pos - centre,
         sd=np.array([p.std(0) if len(p) > 1 else np.full(3, 2.0) for p in pos]),
-        colour=np.array([c.mean(0) if len(c) else np.zeros(3) for c in col]) if coloured else np.full((len(names), 3), np.nan),
-        colour_sd=np.array([c.std(0) if len(c) > 1 else np.ones(3) for c in col]) if coloured else np.full((len(names), 3), np.nan),
+        colour=colour,
+        colour_sd=colour_sd,
         frequency=np.array([len(p) / used for p in pos]),
         worms=used,
         labs=tuple(sorted({w.lab for w in worms})),

@@ -119,8 +119,6 @@ def restored_session_layer(image_key: str, shape_zyx=None):
     return review_points(session, name, {"session": str(path), "image": image_key})
 
 
-
-
 # ----- neuron tables --------------------------------------------------------------------------
 
 
