@@ -588,7 +588,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
     atlas = build_atlas(train_worms) if cfg.panel_fraction > 0 else None
     own_pairs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
     panel_tests = _panel_tests(worms, own_pairs, cfg.train_labs) if atlas is not None else {}
-    log(f"training on {len(train_worms)} worms of {', '.join(cfg.train_labs)}; validating on "
+    trained_labs = [lab for lab in cfg.train_labs if any(w.lab == lab for w in train_worms)]  # those the corpus has
+    log(f"training on {len(train_worms)} worms of {', '.join(trained_labs)}; validating on "
         + ", ".join(f"{lab} ({len(p)} pairs)" for lab, p in val_pairs.items()))
 
     model = CorrespondenceModel(cfg.model).to(device)
