@@ -33,6 +33,14 @@ def untrained_weights(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def shipped():
+    """The shipped model: where the behaviour tested depends on a trained model's answers."""
+    from napari_fdlc.identify import Identifier
+
+    return Identifier.load(device="cpu")
+
+
 @pytest.fixture
 def table_files(tmp_path, worm, other_worm):
     test = tmp_path / "test.csv"

@@ -27,12 +27,6 @@ def identifier(untrained_weights):
 
 
 @pytest.fixture(scope="module")
-def shipped():
-    """The shipped model: where the behaviour tested depends on a trained model's answers."""
-    return Identifier.load(device="cpu")
-
-
-@pytest.fixture(scope="module")
 def panel():
     return load_panel()
 

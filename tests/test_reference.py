@@ -7,13 +7,6 @@ from napari_fdlc.reference import (Atlas, atlas_worm, build_atlas, generate_worm
 from napari_fdlc.table import NeuronTable
 
 
-@pytest.fixture(scope="module")
-def shipped():
-    from napari_fdlc.identify import Identifier
-
-    return Identifier.load(device="cpu")
-
-
 def test_shipped_atlas_and_panel():
     atlas = load_atlas()
     assert len(atlas.names) > 100 and len(set(atlas.names)) == len(atlas.names)

@@ -28,8 +28,9 @@ class Worm:
 
 
 def default_corpus_path() -> Path | None:
-    """``$FDLC_CORPUS``, else ``../shared/data/neuropal_corpus`` relative to the working directory
-    or to the source checkout; None when none exists."""
+    """``$FDLC_CORPUS`` when set (refused when it holds no worms.csv), else
+    ``../shared/data/neuropal_corpus`` relative to the working directory or to the source
+    checkout; None when neither exists."""
     if os.environ.get("FDLC_CORPUS"):  # asked for: that one or none (not another one found elsewhere)
         path = Path(os.environ["FDLC_CORPUS"])
         if not (path / "worms.csv").exists():

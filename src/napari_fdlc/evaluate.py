@@ -17,7 +17,7 @@ import numpy as np
 
 from .errors import FdlcError
 from .match import Labelling, make_labelling, name_probabilities
-from .table import NeuronTable
+from .table import NeuronTable, check_named
 
 
 @dataclass
@@ -86,9 +86,7 @@ def coverage_curve(conf: np.ndarray, correct: np.ndarray, thresholds=(0.0, 0.05,
 
 
 def baseline_labelling(match_fn, test: NeuronTable, templates: list[NeuronTable], use_colour: bool) -> Labelling:
-    unnamed = [t for t in templates if not t.names]
-    if unnamed:
-        raise FdlcError(f"{unnamed[0].source or 'a template'}: no named neurons; a template needs names to give them")
+    check_named(templates)
     per_template = [(match_fn(t, test, use_colour)[:, :-1], t.labels) for t in templates]
     names, probs = name_probabilities(per_template)
     return make_labelling(names, probs)

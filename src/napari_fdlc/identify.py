@@ -36,7 +36,7 @@ from .geometry import (CHIRALITIES, FLAT_UM, apply_affine, canonical_frame, comp
 from .match import Labelling, assign_log, check_fixed, make_labelling, name_probabilities
 from .register import (HEAD_WINDOW, Placement, body_reach, head_window, posterior, register, smaller_worm_factor,
                        template_mixture)
-from .table import NeuronTable
+from .table import NeuronTable, check_named
 
 if TYPE_CHECKING:
     from .reference import Atlas, Panel
@@ -865,9 +865,7 @@ class Identifier:
             raise ModelError("no model loaded")
         if not templates:
             raise FdlcError("no template given")
-        unnamed = [t for t in templates if not t.names]
-        if unnamed:
-            raise FdlcError(f"{unnamed[0].source or 'a template'}: no named neurons; a template needs names to give them")
+        check_named(templates)
         if len(test) == 0:
             raise FdlcError(f"{test.source or 'the test'}: no neurons to name")
         if not all(np.isfinite(t.xyz).all() for t in (test, *templates)):

@@ -136,6 +136,13 @@ TOO_SPREAD = 3.0
 SPREAD_MIN_NEURONS = 15
 
 
+def check_named(templates: list[NeuronTable]) -> None:
+    """Refuse, naming it, a template without a named neuron: it has no name to give."""
+    unnamed = [t for t in templates if not t.names]
+    if unnamed:
+        raise TableError(f"{unnamed[0].source or 'a template'}: no named neurons; a template needs names to give them")
+
+
 def neuron_spacing(xyz: np.ndarray) -> float | None:
     """The median distance (µm) from a neuron to its second-nearest one (None under 3 neurons).
     The second, not the first: a nucleus split in two by a segmentation is one close pair."""

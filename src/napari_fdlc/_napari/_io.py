@@ -33,7 +33,8 @@ def _one_path(path):
     return str(path)
 
 
-def _show_warning(message: str) -> None:
+def notify_warning(message: str) -> None:
+    """A warning shown in napari (a notification)."""
     from napari.utils.notifications import show_warning
 
     show_warning(message)
@@ -41,7 +42,7 @@ def _show_warning(message: str) -> None:
 
 def _warn_in_napari(message: str) -> None:
     """A warning the user sees in napari (and on stderr, where scripts see it)."""
-    with warnings_to(_show_warning):
+    with warnings_to(notify_warning):
         warn(message)
 
 
@@ -56,7 +57,7 @@ def get_stack_reader(path):
     return read_stack_layers
 
 
-@warnings_to(_show_warning)  # what the readers warn about reaches the user
+@warnings_to(notify_warning)  # what the readers warn about reaches the user
 def read_stack_layers(path) -> list[tuple]:
     """A stack's channels as image layers (a recording's as t, z, y, x layers), with the
     annotated neurons of an NWB file and a saved Auto-label session."""
@@ -138,7 +139,7 @@ def get_table_reader(path):
     return read_table_layer if (ours or neuropal) else None
 
 
-@warnings_to(_show_warning)
+@warnings_to(notify_warning)
 def read_table_layer(path) -> list[tuple]:
     from ..table import read_table
 

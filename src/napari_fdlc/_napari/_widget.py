@@ -70,7 +70,7 @@ from ..review import (
     user_session_file,
 )
 from ..table import COLOUR_CHANNELS, NeuronTable
-from ._io import RESULT_SUFFIX, image_key_of
+from ._io import RESULT_SUFFIX, image_key_of, notify_warning
 from ._jobs import wait_until_idle
 from ._layers import (
     META_KEY,
@@ -1330,9 +1330,7 @@ class AutoLabelWidget(QWidget):
         show_error(message)
 
     def _notify_warning(self, message: str) -> None:
-        from napari.utils.notifications import show_warning
-
-        show_warning(message)
+        notify_warning(message)
 
     def _notify_info(self, message: str) -> None:
         from napari.utils.notifications import show_info

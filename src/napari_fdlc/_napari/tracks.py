@@ -50,7 +50,7 @@ from qtpy.QtWidgets import (
 )
 
 from ..errors import FdlcError, warnings_to
-from ._io import image_key_of
+from ._io import image_key_of, notify_warning
 from ._jobs import wait_until_idle
 from ._layers import META_KEY, _short_name, is_image_layer, layer_role, stack_from_layers
 from ._warm_up import start_warm_up
@@ -362,7 +362,11 @@ class TrackWidget(QWidget):
         worker.returned.connect(lambda out: self._show(*out, name))
         worker.errored.connect(self._on_error)
         worker.finished.connect(lambda: self._set_busy(False))
-        worker.finished.connect(lambda: [self._warn(message) for message in warned])
+        def show_warnings():
+            for message in warned:
+                notify_warning(message)
+
+        worker.finished.connect(show_warnings)
         worker.start()
         if wait:
             self.wait()
@@ -405,11 +409,6 @@ class TrackWidget(QWidget):
             show_error(message)
         except Exception:  # pragma: no cover - notification machinery unavailable
             pass
-
-    def _warn(self, message: str) -> None:
-        from napari.utils.notifications import show_warning
-
-        show_warning(message)
 
     def _set_busy(self, busy: bool) -> None:
         self._busy = busy
