@@ -93,3 +93,18 @@ def test_weights_round_trip_and_refusals(tmp_path):
         load_model(tmp_path / "absent")
 
 
+
+
+def test_load_model_refuses_weights_that_are_not_finite(tmp_path):
+    """Before, weights holding NaN (a corrupt copy, a run that diverged) loaded without a word,
+    and `fdlc label --weights` died in linear_sum_assignment with a traceback."""
+    from safetensors.torch import load_file, save_file
+
+    path = tmp_path / "model"
+    save_model(CorrespondenceModel({"layers": 1, "dim": 32}), path, {})
+    weights = path.with_suffix(".safetensors")
+    state = load_file(str(weights))
+    state["project.weight"][:] = float("nan")
+    save_file(state, str(weights))
+    with pytest.raises(ModelError, match="not finite"):
+        load_model(path)

@@ -415,3 +415,152 @@ def test_handedness_of_a_flat_worm_is_refused(tmp_path, capsys):
     write_table(NeuronTable(xyz, worm.colours, worm.labels), path)
     assert run("handedness", path) == 2
     assert "plane" in _one_line_error(capsys)
+
+
+# --------------------------------------------------------------------------------------------
+# Training settings and outputs refused before any training (session 30's review)
+
+
+class TrainingStarted(Exception):
+    """Raised by :func:`no_training`: the run got as far as making training batches."""
+
+
+@pytest.fixture
+def no_training(monkeypatch):
+    """Stop any run at its first batch: these tests are about what is refused before training."""
+    def sentinel(*args, **kwargs):
+        raise TrainingStarted
+        yield  # pragma: no cover
+
+    monkeypatch.setattr("napari_fdlc.train.training_batches", sentinel)
+
+
+def _config(tmp_path, **overrides) -> Path:
+    path = tmp_path / "tiny.json"
+    path.write_text(json.dumps({**TINY, **overrides}))
+    return path
+
+
+def _tiny_checkpoint(path: Path, model: dict | None = None, card: dict | None = None) -> Path:
+    import torch
+
+    from napari_fdlc.model import CorrespondenceModel, save_model
+
+    torch.manual_seed(0)
+    save_model(CorrespondenceModel(model or TINY["model"]), path, card or {})
+    return path
+
+
+@pytest.mark.parametrize("setting, value", [
+    ("lr", -0.001), ("lr", float("nan")), ("weight_decay", -1.0), ("scale_jitter", float("nan")),
+    ("max_neurons", 0), ("colour_dropout", 1.5), ("motion", [3.0, 1.0]),
+])
+def test_train_refuses_nonsense_numbers_in_its_configuration_in_one_line(tmp_path, fake_corpus, capsys, no_training,
+                                                                          setting, value):
+    """Before: the first four reached torch or numpy (`Invalid learning rate`, `high - low range
+    exceeds valid bounds`), max_neurons 0 cropped every worm to nothing ('the neuron table is
+    empty'), the last two ran. Now each is refused in one line naming the setting."""
+    assert _train(fake_corpus, _config(tmp_path, **{setting: value}), tmp_path / "out" / "model") == 2
+    assert setting in _one_line_error(capsys)
+
+
+def test_train_refuses_a_device_torch_cannot_use_in_one_line(tmp_path, fake_corpus, tiny_config, capsys, no_training):
+    """`--device mps` on a torch without MPS parses as a device name; before, the run went on to
+    `model.to('mps')` and a RuntimeError traceback. Now a tensor is put there first."""
+    import torch
+
+    if torch.backends.mps.is_available():
+        pytest.skip("this machine has MPS")
+    assert _train(fake_corpus, tiny_config, tmp_path / "out" / "model", "--device", "mps") == 2
+    assert "mps" in _one_line_error(capsys)
+
+
+@pytest.mark.parametrize("held_out", [2, 3])
+def test_train_with_fewer_than_two_training_worms_is_refused_in_one_line(tmp_path, fake_corpus, capsys, held_out):
+    """A lab of 3 worms with 2 (3) held out leaves 1 (0) training worms; before, drawing a real
+    pair of two different worms ended in numpy's ValueError traceback."""
+    assert run("train", "--config", _config(tmp_path, val_worms_per_lab=held_out), "--corpus", fake_corpus,
+               "--train-labs", "NP", "--no-calibrate", "--out", tmp_path / "out" / "model") == 2
+    assert "val_worms_per_lab" in _one_line_error(capsys)
+
+
+def test_a_training_lab_without_validation_pairs_still_gives_a_checkpoint(tmp_path, tiny_config, write_corpus):
+    """A training lab of one worm has no validation pair (top-1 NaN). Before, the mean over
+    the labs was NaN, never better than the best so far, and no checkpoint was saved, while the
+    run exited 0 and printed where the weights were. Labs without pairs are left out of it."""
+    root = write_corpus(tmp_path / "corpus", {"NP": [generate_worm(seed=100 + i) for i in range(3)],
+                                              "EY": [generate_worm(seed=200)]})
+    out = tmp_path / "out" / "model"
+    assert _train(root, tiny_config, out) == 0
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert out.with_suffix(".safetensors").exists() and meta["best_step"] == TINY["steps"]
+
+
+def test_train_keeps_a_configurations_calibrate_false(tmp_path, fake_corpus, monkeypatch):
+    """Flags override the --config JSON, and only when given: before, `"calibrate": false` (as
+    in docs/training/stage1-3.json) was turned back on when --no-calibrate was not given."""
+    seen = {}
+
+    def fake_train(cfg, log=print):
+        seen["calibrate"] = cfg.calibrate
+        return {"best_mean_top1": 0.0, "history": [], "minutes": 0.0}
+
+    monkeypatch.setattr("napari_fdlc.train.train", fake_train)
+    assert run("train", "--config", _config(tmp_path, calibrate=False), "--corpus", fake_corpus,
+               "--out", tmp_path / "out" / "model") == 0
+    assert seen["calibrate"] is False
+
+
+def test_train_init_from_weights_of_which_nothing_fits_is_refused(tmp_path, fake_corpus, tiny_config, capsys, no_training):
+    """Before, `--init-from` another architecture's weights logged '0/35 tensors' and trained
+    from random weights as if nothing were wrong."""
+    import torch
+    from safetensors.torch import save_file
+
+    other = tmp_path / "other"
+    save_file({"encoder.weight": torch.zeros(4, 4)}, f"{other}.safetensors")
+    assert _train(fake_corpus, tiny_config, tmp_path / "out" / "model", "--init-from", other) == 2
+    assert "fits" in _one_line_error(capsys)
+
+
+def test_resume_refuses_a_checkpoint_of_another_model_configuration_of_the_same_shapes(
+        tmp_path, fake_corpus, tiny_config, capsys, no_training):
+    """A checkpoint trained with scale_um 40 has the tensors of one trained with 20; before,
+    --resume compared shapes only, trained it under 20 and rewrote its JSON with 20: weights
+    for one input scale saved as a model of another."""
+    checkpoint = _tiny_checkpoint(tmp_path / "ck" / "model", {**TINY["model"], "scale_um": 40.0},
+                                  {"best_step": 1, "history": [{"step": 1, "mean_top1": 0.1}]})
+    assert _train(fake_corpus, tiny_config, checkpoint, "--steps", "4", "--resume") == 2
+    assert "configuration differs" in _one_line_error(capsys)
+
+
+def test_resume_with_no_step_left_is_refused(tmp_path, fake_corpus, tiny_config, capsys, no_training):
+    """A checkpoint at step 3 resumed with --steps 3 has nothing to do: before, no step ran and
+    the run said where weights were that it had not written; --stop-at outside the run's steps
+    was never reached."""
+    checkpoint = _tiny_checkpoint(tmp_path / "ck" / "model", None, {"best_step": 3, "history": [{"step": 3, "mean_top1": 0.1}]})
+    assert _train(fake_corpus, tiny_config, checkpoint, "--steps", "3", "--resume") == 2
+    assert "--steps" in _one_line_error(capsys)
+    assert _train(fake_corpus, tiny_config, checkpoint, "--steps", "8", "--stop-at", "2", "--resume") == 2
+    assert "--stop-at" in _one_line_error(capsys)
+
+
+def test_a_new_run_from_the_checkpoint_at_out_is_refused_and_keeps_it(tmp_path, fake_corpus, tiny_config, capsys, no_training):
+    """`--init-from runs/model --out runs/model`: before, the new run's first validation (its
+    best starts at -1) replaced the weights it started from."""
+    checkpoint = _tiny_checkpoint(tmp_path / "runs" / "model")
+    before = checkpoint.with_suffix(".safetensors").read_bytes()
+    assert _train(fake_corpus, tiny_config, checkpoint, "--init-from", checkpoint) == 2
+    assert "replace an input" in _one_line_error(capsys)
+    assert checkpoint.with_suffix(".safetensors").read_bytes() == before
+
+
+@pytest.mark.parametrize("where", ["under_a_file", "a_folder/"])
+def test_train_out_that_cannot_be_written_is_refused_before_training(tmp_path, fake_corpus, tiny_config, capsys,
+                                                                    no_training, where):
+    """Before, --out under a file trained until the first validation and failed to save there;
+    --out ending in a separator wrote the hidden files `.safetensors` and `.json`."""
+    (tmp_path / "under_a_file").write_text("a file\n")
+    out = f"{tmp_path / 'under_a_file' / 'model'}" if where == "under_a_file" else f"{tmp_path}/{where}"
+    assert _train(fake_corpus, tiny_config, out) == 2
+    _one_line_error(capsys)

@@ -7,6 +7,7 @@ input was valid.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -147,7 +148,8 @@ def _run_train(args) -> int:
                         "give --out (or --resume to continue it)")
     cfg.out = args.out or cfg.out
     cfg.resume = args.resume
-    cfg.calibrate = not args.no_calibrate
+    if args.no_calibrate:  # else the configuration's own choice
+        cfg.calibrate = False
     if args.colour_input:
         cfg.model = {**cfg.model, "colour_channels": 3}
     if args.eval_every is not None:
@@ -163,6 +165,12 @@ def _run_train(args) -> int:
     if args.batch_size is not None:
         cfg.batch_size = args.batch_size
     cfg.check()
+    if str(cfg.out).endswith(("/", os.sep)) or not Path(cfg.out).name:
+        raise FdlcError(f"--out {cfg.out}: give the checkpoint's path without suffix, such as runs/model")
+    # Refused before training, not at the first save: a folder that cannot be made, or the very
+    # weights a new run starts from.
+    starts_from = [model_files(cfg.init_from)[0]] if cfg.init_from and not cfg.resume else []
+    check_output(model_files(cfg.out)[0], inputs=starts_from, create_folder=True)
     if args.calibrate_only and cfg.task != "identify":
         raise FdlcError("--calibrate-only: a tracking model has no inference settings to fit (they stay at their defaults)")
     if args.calibrate_only:
@@ -172,6 +180,8 @@ def _run_train(args) -> int:
         return 0
     result = train(cfg)
     weights, _ = model_files(cfg.out)
+    if result["best_mean_top1"] < 0:
+        raise FdlcError(f"no checkpoint was saved at {weights}")
     print(f"best mean validation top-1 {result['best_mean_top1']:.3f} after {result['minutes']:.1f} min; weights at {weights}")
     return 0
 

@@ -96,5 +96,10 @@ def colour_log_likelihood(template_scores: np.ndarray, test_scores: np.ndarray, 
     if template_scores.shape[1] == 0:
         return np.zeros((len(test_scores), len(template_scores)))
     # |g|^2 + |f|^2 - 2 g.f: a few hundred rows make the (N, M, C) difference array 4× slower.
-    d2 = (test_scores**2).sum(1)[:, None] + (template_scores**2).sum(1)[None, :] - 2 * test_scores @ template_scores.T
-    return -np.maximum(d2, 0.0) / (2 * sigma**2)
+    d2 = test_scores @ template_scores.T
+    d2 *= -2
+    d2 += (test_scores**2).sum(1)[:, None]
+    d2 += (template_scores**2).sum(1)[None, :]
+    np.maximum(d2, 0.0, out=d2)
+    d2 *= -1 / (2 * sigma**2)
+    return d2

@@ -113,20 +113,29 @@ def fit_affine(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = No
     src = np.asarray(src, float)
     dst = np.asarray(dst, float)
     w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
+    total = w.sum()
     # Solved about the points' weighted means: the normal equations of coordinates far from the
     # origin (a microscope stage's, ~1e6 µm) lose every digit a neuron's position needs.
-    mu_s, mu_d = (np.average(a, axis=0, weights=w) if w.sum() > 0 else a.mean(axis=0) for a in (src, dst))
-    homog = np.hstack([src - mu_s, np.ones((len(src), 1))])
-    lhs = (homog * w[:, None]).T @ homog
-    rhs = (homog * w[:, None]).T @ (dst - mu_d)
-    prior = np.vstack([np.eye(3), np.zeros((1, 3))])
-    reg = ridge * max(w.sum(), 1.0) * np.diag([1, 1, 1, 0])
-    linear, shift = np.split(np.linalg.solve(lhs + reg + 1e-9 * np.eye(4), rhs + reg @ prior), [3])
-    return np.vstack([linear, shift + mu_d - mu_s @ linear])
+    mu_s, mu_d = (w @ src / total, w @ dst / total) if total > 0 else (src.mean(axis=0), dst.mean(axis=0))
+    homog = np.ones((len(src), 4))
+    homog[:, :3] = src - mu_s
+    weighted = homog.T * w
+    lhs = weighted @ homog
+    strength = ridge * max(total, 1.0)  # on the linear part only, toward the identity
+    lhs[_LINEAR, _LINEAR] += strength
+    lhs.flat[::5] += 1e-9
+    rhs = weighted @ (dst - mu_d)
+    rhs[:3] += strength * np.eye(3)
+    solved = np.linalg.solve(lhs, rhs)
+    solved[3] += mu_d - mu_s @ solved[:3]
+    return solved
+
+
+_LINEAR = np.arange(3)  # the rows of an affine's linear part (row 3 is the shift)
 
 
 def apply_affine(xyz: np.ndarray, affine: np.ndarray) -> np.ndarray:
-    return np.hstack([xyz, np.ones((len(xyz), 1))]) @ affine
+    return xyz @ affine[:3] + affine[3]
 
 
 def compose_affine(first: np.ndarray, then: np.ndarray) -> np.ndarray:
@@ -222,14 +231,15 @@ def fit_warp(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, sigma: float
     x = x - origin
     centres = _grid_centres(x, sigma / 2)
     basis = _gauss(x, centres, sigma)  # (K, C)
+    weighted = basis.T * w
     # min sum_k w_k |basis_k c - r_k|^2 + smoothness c' G c, G the kernel between centres
-    system = (basis.T * w) @ basis + smoothness * _gauss(centres, centres, sigma)
-    system[np.diag_indices_from(system)] += 1e-9 * np.trace(system)
+    system = weighted @ basis + smoothness * _gauss(centres, centres, sigma)
+    system.flat[:: len(system) + 1] += 1e-9 * np.trace(system)
     # In torch: beside torch's own threads, numpy/scipy's threaded OpenBLAS can take 50-500x longer.
     import torch
 
     factor = torch.linalg.cholesky(torch.from_numpy(system))
-    coef = torch.cholesky_solve(torch.from_numpy((basis.T * w) @ residual), factor).numpy()
+    coef = torch.cholesky_solve(torch.from_numpy(weighted @ residual), factor).numpy()
     return Warp(affine, centres, coef, sigma, origin)
 
 
@@ -256,6 +266,8 @@ def position_evidence(placed: np.ndarray, ref_xyz: np.ndarray, sigma: float) -> 
     anywhere in the worm, for the real columns ("no match" keeps ratio 1). It sharpens the
     tracking model's answer too (dropping it cost a point on held-out recordings) and is what
     the identification model, trained across worms, lacks most here."""
-    d2 = squared_distances(placed, ref_xyz)
+    llr = squared_distances(placed, ref_xyz)
     volume = float(np.prod(np.ptp(ref_xyz, axis=0) + 2 * sigma))
-    return -d2 / (2 * sigma**2) - 1.5 * np.log(2 * np.pi * sigma**2) + np.log(volume)
+    llr *= -1 / (2 * sigma**2)
+    llr += np.log(volume) - 1.5 * np.log(2 * np.pi * sigma**2)
+    return llr

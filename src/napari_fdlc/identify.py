@@ -487,8 +487,7 @@ class Identifier:
         the temperature. The names are assigned on the answer without it (the weights of colour
         and of "no match" were chosen for top-1 at temperature 1), so that calibration changes
         the confidences reported, not the names."""
-        lp = self._calibrate(log_p) if calibrated else log_p
-        return np.exp(_add_evidence(lp, colour))
+        return np.exp(self._calibrate(log_p, colour) if calibrated else _add_evidence(log_p, colour))
 
     def _model_colours(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool):
         """Colour inputs for a model trained with colour (normal scores of R, G, B), or Nones
@@ -504,12 +503,16 @@ class Identifier:
         return bool(use_colour and self.model.config.get("colour_channels")) and all(
             colour_model.has_colour(t) for t in tables)
 
-    def _calibrate(self, log_p: np.ndarray) -> np.ndarray:
+    def _calibrate(self, log_p: np.ndarray, evidence: np.ndarray | None = None) -> np.ndarray:
         """Temperature (fitted on training labs) on the final answer only — not on the
-        placement choice or the refinement weights."""
-        if self.settings.temperature == 1.0:
+        placement choice or the refinement weights — then ``evidence`` as :func:`_add_evidence`
+        adds it. One renormalisation does for both: the tempered rows' own would cancel in it."""
+        if evidence is None and self.settings.temperature == 1.0:
             return log_p
-        return _log_softmax_rows(log_p / self.settings.temperature)
+        tempered = log_p / self.settings.temperature
+        if evidence is not None:
+            tempered[:, :-1] += evidence
+        return _log_softmax_rows(tempered)
 
     def _colour_evidence(self, template: NeuronTable, test: NeuronTable, model_saw_colour: bool) -> np.ndarray | None:
         """(N_test, M_template) weighted colour log-likelihood ratios, added to the positional
@@ -526,9 +529,10 @@ class Identifier:
         sigma = self.settings.colour_sigma
         # Likelihood ratio against the population (normal scores are N(0,1) by construction),
         # so "no match" keeps ratio 1 and colour only reorders real candidates.
-        llr = colour_model.colour_log_likelihood(f, g, sigma) - len(channels) * np.log(sigma)
-        llr = llr + 0.5 * (g**2).sum(axis=1, keepdims=True)
-        return weight * llr
+        llr = colour_model.colour_log_likelihood(f, g, sigma)
+        llr += 0.5 * (g**2).sum(axis=1, keepdims=True) - len(channels) * np.log(sigma)
+        llr *= weight
+        return llr
 
     def label(
         self,

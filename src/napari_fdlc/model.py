@@ -288,6 +288,14 @@ def save_model(model: CorrespondenceModel, path: str | Path, card: dict | None =
             left.unlink(missing_ok=True)
 
 
+def check_finite(state: dict, weights: Path) -> None:
+    """Refuse weights that hold NaN or infinity (a corrupt copy, a run that diverged): they would
+    load, and fail far later in the assignment."""
+    bad = sorted(k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all()))
+    if bad:
+        raise ModelError(f"{weights}: weights that are not finite numbers ({', '.join(bad[:3])}{' ...' if len(bad) > 3 else ''})")
+
+
 def load_model(path: str | Path) -> CorrespondenceModel:
     """Load ``path.safetensors`` with its ``path.json`` config; refuse anything that does not fit."""
     from safetensors import SafetensorError
@@ -307,6 +315,7 @@ def load_model(path: str | Path) -> CorrespondenceModel:
         state = load_file(str(weights))
     except (SafetensorError, OSError, ValueError) as exc:
         raise ModelError(f"{weights}: not a valid safetensors file ({str(exc).splitlines()[0]})") from None
+    check_finite(state, weights)
     try:
         model.load_state_dict(state, strict=True)
     except RuntimeError:

@@ -246,23 +246,17 @@ def _match_rate(log_p: np.ndarray) -> float:
 def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: TrackSettings, fit: bool = True) -> dict:
     """Calibrated, colour-fused log p, its one-to-one assignment onto the reference's neurons,
     and (``fit``) the warp that carries this volume onto the reference, fitted on the assignment."""
-    from .identify import _add_evidence
-
     lp, placed, saw = out
     rate = _match_rate(lp)
-    lp = identifier._calibrate(lp)
-    evidence = []  # log likelihood ratios on the real columns, added before one renormalisation
-    if s.use_colour:
-        evidence.append(identifier._colour_evidence(ref.table, volume, model_saw_colour=saw))
+    # log likelihood ratios on the real columns, fused with the calibrated answer in one renormalisation
+    evidence = identifier._colour_evidence(ref.table, volume, model_saw_colour=saw) if s.use_colour else None
     if s.position_sigma_um > 0:
-        evidence.append(position_evidence(placed, ref.xyz, s.position_sigma_um))
-    evidence = [e for e in evidence if e is not None]
-    if evidence:
-        lp = _add_evidence(lp, sum(evidence))
+        near = position_evidence(placed, ref.xyz, s.position_sigma_um)
+        evidence = near if evidence is None else np.add(evidence, near, out=near)
+    lp = identifier._calibrate(lp, evidence)
     choice = assign_log(lp, s.no_match_weight)
-    p = np.exp(lp[:, :-1])
     matched = choice >= 0
-    weight = np.where(matched, p[np.arange(len(p)), np.maximum(choice, 0)], 0.0)
+    weight = np.where(matched, np.exp(lp[np.arange(len(lp)), np.maximum(choice, 0)]), 0.0)
     weight[weight < s.warp_min_prob] = 0.0
     target = ref.xyz[np.maximum(choice, 0)]
     warp = fit_warp(volume.xyz, target, weight, s.warp_sigma_um, s.warp_smoothness) if fit else None

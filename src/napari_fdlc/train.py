@@ -118,20 +118,55 @@ class TrainConfig:
             raise FdlcError(f"--seed must be a whole number from 0 to 2**32 - 1 (got {self.seed})")
         if not 0 <= self.split_seed < 2**32:
             raise FdlcError(f"split_seed must be a whole number from 0 to 2**32 - 1 (got {self.split_seed})")
-        if self.time_limit_min is not None and not self.time_limit_min > 0:
+        if self.time_limit_min is not None and not 0 < self.time_limit_min < math.inf:
             raise FdlcError(f"--minutes must be a positive number (got {self.time_limit_min})")
+        self._check_ranges()
         if self.device:
-            import torch
-
-            try:
-                torch.device(self.device)
-            except RuntimeError:
-                raise FdlcError(f"--device {self.device}: not a torch device (use cpu or cuda)") from None
-            if self.device.startswith("cuda") and not torch.cuda.is_available():
-                raise FdlcError(f"--device {self.device}: no CUDA device here (torch sees none); use --device cpu")
+            self._check_device()
         from .model import model_config
 
         model_config(self.model)
+
+    def _check_ranges(self) -> None:
+        """Numbers a run can use: a configuration file can hold a negative rate or NaN, which
+        torch or numpy would only refuse with a traceback (or, for sizes, a misleading error)."""
+        def fail(name, what):
+            raise FdlcError(f"training setting {name} must be {what} (got {getattr(self, name)!r})")
+
+        if not 0 < self.lr < math.inf:
+            fail("lr", "a positive number")
+        for name in ("weight_decay", "colour_mixing", "colour_noise"):
+            if not 0 <= getattr(self, name) < math.inf:
+                fail(name, "a number of 0 or more")
+        for name in ("synthetic_fraction", "aligned_fraction", "negative_fraction", "registered_fraction",
+                     "panel_fraction", "colour_dropout"):
+            if not 0 <= getattr(self, name) <= 1:
+                fail(name, "a fraction from 0 to 1")
+        if not 0 <= self.scale_jitter < 1:
+            fail("scale_jitter", "a fraction from 0 to below 1")
+        for name in ("max_neurons", "frames_apart", "stale_warp"):
+            if getattr(self, name) < 1:
+                fail(name, "at least 1")
+        if self.val_worms_per_lab < 0:
+            fail("val_worms_per_lab", "0 or more")
+        low, high = self.motion
+        if not 0 <= low <= high < math.inf:
+            fail("motion", "two numbers, 0 <= low <= high")
+
+    def _check_device(self) -> None:
+        """A device torch can put a tensor on: the name must parse, and the device be there."""
+        import torch
+
+        try:
+            device = torch.device(self.device)
+        except RuntimeError:
+            raise FdlcError(f"--device {self.device}: not a torch device (use cpu or cuda)") from None
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise FdlcError(f"--device {self.device}: no CUDA device here (torch sees none); use --device cpu")
+        try:
+            torch.empty(0, device=device)
+        except (RuntimeError, AssertionError) as exc:
+            raise FdlcError(f"--device {self.device}: torch cannot use it here ({str(exc).splitlines()[0]})") from None
 
     def _check_types(self) -> None:
         """Each setting of the kind it must be (a configuration file can hold anything)."""
@@ -529,7 +564,7 @@ def _load_start(model, path: str, resume: bool, log) -> tuple[int, list, float]:
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    from .model import model_files
+    from .model import check_finite, model_config, model_files
 
     weights, config_path = model_files(path)
     if not weights.exists():
@@ -538,21 +573,26 @@ def _load_start(model, path: str, resume: bool, log) -> tuple[int, list, float]:
         state = load_file(str(weights))
     except (SafetensorError, OSError, ValueError) as exc:
         raise ModelError(f"{weights}: not a valid safetensors file ({str(exc).splitlines()[0]})") from None
+    check_finite(state, weights)
     own = model.state_dict()
     fitting = {k: v for k, v in state.items() if k in own and own[k].shape == v.shape}
-    if resume and (len(fitting) != len(own) or len(state) != len(own)):
-        raise ModelError(f"{weights}: --resume needs the checkpoint's own model, and this one has other sizes than "
-                         "the configuration (give its --config, or --init-from to start a new run from it)")
+    if not fitting:
+        raise ModelError(f"{weights}: none of its tensors fits this model (weights of another architecture?)")
+    if resume:
+        try:
+            meta = json.loads(config_path.read_text())
+            history = list(meta.get("history", []))
+            best_step = int(meta.get("best_step", 0))
+            theirs = model_config(meta.get("config"))
+        except (OSError, ValueError, TypeError, AttributeError, ModelError) as exc:
+            raise ModelError(f"{config_path}: not a readable checkpoint record ({exc})") from None
+        if len(fitting) != len(own) or len(state) != len(own) or theirs != model.config:
+            raise ModelError(f"{weights}: --resume needs the checkpoint's own model, and this one's configuration differs "
+                             "(give its --config, or --init-from to start a new run from it)")
     model.load_state_dict(fitting, strict=False)
     log(f"started from {weights}: {len(fitting)}/{len(own)} tensors")
     if not resume:
         return 1, [], -1.0
-    try:
-        meta = json.loads(config_path.read_text())
-        history = list(meta.get("history", []))
-        best_step = int(meta.get("best_step", 0))
-    except (OSError, ValueError, TypeError, AttributeError) as exc:
-        raise ModelError(f"{config_path}: not a readable checkpoint record ({exc})") from None
     best = max((float(h.get("mean_top1", -1.0)) for h in history if h.get("step") == best_step), default=-1.0)
     # The run goes on from the checkpoint (its best step): later entries belong to steps undone.
     return best_step + 1, [h for h in history if h.get("step", 0) <= best_step], best
@@ -584,6 +624,11 @@ def train(cfg: TrainConfig, log=print) -> dict:
     worms = load_corpus(cfg.corpus)
     _check_labs(cfg, {w.lab for w in worms})
     train_worms, val_worms, val_pairs = held_out(worms, cfg)
+    needed = 1 if cfg.task == "track" else 2  # a real pair is two worms
+    if len(train_worms) < needed:
+        raise FdlcError(f"{len(train_worms)} training worm(s) left after holding out val_worms_per_lab "
+                        f"({cfg.val_worms_per_lab}) of each lab; {cfg.task} training needs {needed}: "
+                        "lower val_worms_per_lab or add worms")
     recordings = tracking_sequences(val_worms, cfg) if cfg.task == "track" else None
     atlas = build_atlas(train_worms) if cfg.panel_fraction > 0 else None
     own_pairs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
@@ -597,6 +642,10 @@ def train(cfg: TrainConfig, log=print) -> dict:
     start_from = cfg.out if cfg.resume else cfg.init_from
     if start_from:
         first_step, history, best = _load_start(model, start_from, cfg.resume, log)
+    if first_step > cfg.steps:
+        raise FdlcError(f"--steps {cfg.steps}: the checkpoint at --out is at step {first_step - 1} already; give more steps")
+    if cfg.stop_at is not None and not first_step <= cfg.stop_at <= cfg.steps:
+        raise FdlcError(f"--stop-at {cfg.stop_at}: must be a step this run takes ({first_step} to {cfg.steps})")
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     warmup = max(1, min(100, cfg.steps // 10))
     done = first_step - 1  # a resumed run's schedule continues where it stopped
@@ -639,7 +688,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
             # a held-out lab is watched, never used to choose.
             first = next(iter(scores.values()))
             own = [lab for lab in first if lab in cfg.train_labs] or list(first)
-            mean = float(np.mean([d[lab] for d in scores.values() for lab in own if lab in d])) if own else 0.0
+            # A lab without validation pairs (one worm) scores NaN: left out, not made the mean.
+            values = [d[lab] for d in scores.values() for lab in own if lab in d and math.isfinite(d[lab])]
+            mean = float(np.mean(values)) if values else 0.0
             entry = {"step": step, "minutes": round(elapsed, 2), "loss": float(np.mean(running)), **scores,
                      "mean_top1": round(mean, 4)}
             history.append(entry)
