@@ -564,3 +564,20 @@ def test_train_out_that_cannot_be_written_is_refused_before_training(tmp_path, f
     out = f"{tmp_path / 'under_a_file' / 'model'}" if where == "under_a_file" else f"{tmp_path}/{where}"
     assert _train(fake_corpus, tiny_config, out) == 2
     _one_line_error(capsys)
+
+
+@pytest.mark.parametrize("flag", ["--calibrate-only", "--resume"])
+def test_without_config_a_checkpoint_goes_on_with_its_own_configuration(tmp_path, fake_corpus, tiny_config, monkeypatch,
+                                                                         flag):
+    """A fold trained on NP alone, then `fdlc train --calibrate-only --out it` (or --resume)
+    without --config: before, the default configuration (all five labs, 3000 steps) was used, so
+    the fold was calibrated on the very lab it holds out. The checkpoint's recorded one is used."""
+    out = tmp_path / "fold" / "model"
+    assert _train(fake_corpus, tiny_config, out, "--train-labs", "NP", "--steps", "6", "--stop-at", "3") == 0
+    seen = {}
+    monkeypatch.setattr("napari_fdlc.train.calibrate_checkpoint", lambda cfg, *a, **k: seen.update(cfg=cfg))
+    monkeypatch.setattr("napari_fdlc.train.train", lambda cfg, log=print: seen.update(cfg=cfg) or
+                        {"best_mean_top1": 0.5, "history": [], "minutes": 0.0})
+    assert run("train", "--corpus", fake_corpus, "--out", out, flag) == 0
+    assert seen["cfg"].train_labs == ("NP",) and seen["cfg"].steps == 6
+    assert Path(seen["cfg"].out) == out

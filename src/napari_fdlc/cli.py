@@ -132,7 +132,14 @@ def _run_train(args) -> int:
     from .model import model_files
     from .train import TrainConfig, train
 
-    cfg = TrainConfig.from_json(args.config) if args.config else TrainConfig()
+    if args.config:
+        cfg = TrainConfig.from_json(args.config)
+    elif args.resume or args.calibrate_only:
+        # The checkpoint's own run (labs, split, schedule): the defaults would calibrate a
+        # leave-one-lab-out fold on the very lab it holds out.
+        cfg = TrainConfig.from_checkpoint(model_files(args.out or TrainConfig.out)[1])
+    else:
+        cfg = TrainConfig()
     given = {"corpus": args.corpus, "threads": args.threads, "time_limit_min": args.minutes,
              "init_from": args.init_from, "stop_at": args.stop_at, "workers": args.workers,
              "device": args.device}

@@ -190,6 +190,22 @@ class TrainConfig:
                 fail(f.name, "two numbers")
 
     @classmethod
+    def from_checkpoint(cls, path: str | Path) -> "TrainConfig":
+        """The configuration a checkpoint's JSON records it was trained with (its ``out``: here)."""
+        path = Path(path)
+        if not path.exists():
+            raise FdlcError(f"{path}: no checkpoint there (give --out, or --config)")
+        try:
+            recorded = json.loads(path.read_text()).get("train_config")
+        except (OSError, ValueError, AttributeError) as exc:
+            raise FdlcError(f"{path}: not a readable checkpoint record ({exc})") from None
+        if not isinstance(recorded, dict):
+            raise FdlcError(f"{path}: the checkpoint records no training configuration; give --config")
+        cfg = cls.from_json(path)
+        cfg.out = str(path.with_suffix(""))
+        return cfg
+
+    @classmethod
     def from_json(cls, path: str | Path) -> "TrainConfig":
         """A configuration from a JSON file: a bare config, or a checkpoint's JSON (train_config)."""
         try:
