@@ -581,3 +581,12 @@ def test_without_config_a_checkpoint_goes_on_with_its_own_configuration(tmp_path
     assert run("train", "--corpus", fake_corpus, "--out", out, flag) == 0
     assert seen["cfg"].train_labs == ("NP",) and seen["cfg"].steps == 6
     assert Path(seen["cfg"].out) == out
+
+
+def test_resume_from_a_checkpoints_configuration_is_not_held_to_that_runs_stop(stopped_run, fake_corpus):
+    """The stopped run recorded `stop_at` 3; resumed with its own JSON as --config (or with
+    none), the run goes on to --steps instead of being refused for a stop already passed."""
+    assert run("train", "--config", stopped_run.with_suffix(".json"), "--corpus", fake_corpus, "--no-calibrate",
+               "--out", stopped_run, "--steps", "6", "--resume") == 0
+    steps = [h["step"] for h in json.loads(stopped_run.with_suffix(".json").read_text())["history"]]
+    assert steps == [3, 6], steps

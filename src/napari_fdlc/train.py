@@ -195,12 +195,6 @@ class TrainConfig:
         path = Path(path)
         if not path.exists():
             raise FdlcError(f"{path}: no checkpoint there (give --out, or --config)")
-        try:
-            recorded = json.loads(path.read_text()).get("train_config")
-        except (OSError, ValueError, AttributeError) as exc:
-            raise FdlcError(f"{path}: not a readable checkpoint record ({exc})") from None
-        if not isinstance(recorded, dict):
-            raise FdlcError(f"{path}: the checkpoint records no training configuration; give --config")
         cfg = cls.from_json(path)
         cfg.out = str(path.with_suffix(""))
         return cfg
@@ -212,8 +206,10 @@ class TrainConfig:
             data = json.loads(Path(path).read_text())
         except (OSError, ValueError) as exc:
             raise FdlcError(f"{path}: not a readable JSON training configuration ({exc})") from None
-        if isinstance(data, dict):
-            data = data.get("train_config", data)
+        if isinstance(data, dict) and "train_config" in data:
+            data = data["train_config"]
+            if isinstance(data, dict):  # when that run was told to stop is not part of its recipe
+                data = {**data, "stop_at": None, "time_limit_min": None}
         if not isinstance(data, dict):
             raise FdlcError(f"{path}: a training configuration is a JSON object of settings")
         unknown = set(data) - set(cls.__dataclass_fields__)
