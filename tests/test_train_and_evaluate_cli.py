@@ -393,6 +393,17 @@ def test_evaluate_defaults_to_the_labs_the_corpus_has(fake_corpus, untrained_wei
     assert "| NP |" in report and "| EY |" in report
 
 
+def test_evaluate_scores_a_lab_named_twice_once(fake_corpus, untrained_weights, tmp_path):
+    """`--labs NP NP` scored NP twice: its rows twice in the tables and twice in the pooled
+    calibration and threshold figures."""
+    out = tmp_path / "a.md"
+    assert run("evaluate", "--corpus", fake_corpus, "--weights", untrained_weights, "--labs", "NP", "NP",
+               "--pairs-per-lab", "1", "--panel-worms-per-lab", "1", "--synthetic-pairs", "0", "--no-cpd",
+               "--out", out) == 0
+    rows = [line for line in out.read_text().splitlines() if line.startswith("| NP | pairs | fdlc | position |")]
+    assert len(rows) == 1, rows
+
+
 def test_a_new_run_from_a_checkpoints_configuration_does_not_replace_it(tmp_path, fake_corpus, tiny_config, capsys):
     """`fdlc train --config runs/model.json` (a checkpoint's JSON) without --out took the
     checkpoint's own --out, and the new run replaced the checkpoint it was configured from."""

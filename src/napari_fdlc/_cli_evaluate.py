@@ -65,7 +65,7 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
     worms = load_corpus(corpus)
     present = {w.lab for w in worms}
     # default: the corpus's labs (the five known ones first, in their order)
-    labs = list(labs or [lab for lab in LABS if lab in present] + sorted(present - set(LABS)))
+    labs = list(dict.fromkeys(labs or [lab for lab in LABS if lab in present] + sorted(present - set(LABS))))  # each once
     unknown = set(labs) - present
     if unknown:
         raise FdlcError(f"no worms of lab(s) {', '.join(sorted(unknown))} in the corpus")

@@ -189,6 +189,7 @@ def test_headless_demo(sample_files, identifier, templates, tmp_path, qtbot):
 
     image = imread(shot)
     assert image.shape[0] > 400 and image.shape[1] > 800
+    assert not list(shot.parent.glob(".*.tmp"))  # written through a temporary file, renamed
 
 
 def test_closing_the_widget_unbinds_its_keys(make_napari_viewer, sample_files, qtbot):

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FdlcError
+from ..errors import FdlcError, atomic_write
 from ._widget import camera
 
 WINDOW_SIZE = (1500, 950)
@@ -63,7 +63,7 @@ def run_demo(
             labels = widget.export(out_dir / "labels.csv", overwrite=True)
             show_labelled_plane(viewer, layer)
             shot = out_dir / "screenshot.png"
-            viewer.screenshot(str(shot), canvas_only=False, flash=False)
+            save_screenshot(viewer, shot)
             return labels, shot
         finally:
             viewer.close()
@@ -100,6 +100,15 @@ def show_labelled_plane(viewer, layer) -> int:
     viewer.dims.set_point(viewer.dims.ndim - 3, z_world)
     viewer.layers.selection.active = layer
     return best
+
+
+def save_screenshot(viewer, path: Path) -> None:
+    """The window as a PNG at ``path``, written whole or not at all (temporary file, renamed)."""
+    import imageio.v3 as iio
+
+    image = viewer.screenshot(canvas_only=False, flash=False)
+    with atomic_write(path, "wb") as handle:
+        handle.write(iio.imwrite("<bytes>", image, extension=".png"))
 
 
 def docs_screenshot(path: str | os.PathLike, *, identifier=None, templates=None, threshold: float | None = None) -> Path:
@@ -139,8 +148,7 @@ def docs_screenshot(path: str | os.PathLike, *, identifier=None, templates=None,
             viewer.dims.set_point(viewer.dims.ndim - 3, plane * float(layer.scale[0]))
             viewer.reset_view()
             camera(viewer).zoom *= 1.2
-            path.parent.mkdir(parents=True, exist_ok=True)
-            viewer.screenshot(str(path), canvas_only=False, flash=False)
+            save_screenshot(viewer, path)
         finally:
             viewer.close()
             if old_env is None:
