@@ -236,3 +236,21 @@ def test_a_track_reference_with_a_repeated_name_says_so_in_napari(track_widget, 
     assert widget.run() is not None, widget.last_error
     messages = [str(r.message) for r in notification_manager.records[before:]]
     assert any(labels[named[0]] in m for m in messages), messages
+
+
+def test_a_sequence_in_pixels_says_so_in_napari(track_widget, tmp_path):
+    """Positions in pixels of 0.25 µm (four times too far apart): `fdlc track` warns that they
+    cannot be µm; the Track widget tracked them without a word."""
+    from napari_fdlc.reference import generate_worm
+    from napari_fdlc.track import join_by_time
+
+    viewer, widget = track_widget
+    worm = generate_worm(seed=4)
+    pixels = NeuronTable(worm.xyz * 4.0, worm.colours, worm.labels)
+    seq = tmp_path / "pixels.csv"
+    write_table(join_by_time([pixels, pixels]).drop(columns=["label"]), seq)
+    widget.set_sequence(seq)
+    before = len(notification_manager.records)
+    assert widget.run() is not None, widget.last_error
+    messages = [str(r.message) for r in notification_manager.records[before:]]
+    assert any("must be micrometres" in m for m in messages), messages

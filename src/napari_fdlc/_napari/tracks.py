@@ -320,7 +320,7 @@ class TrackWidget(QWidget):
         warned: list[str] = []  # what the readers warn about, shown when the job ends
 
         def job():
-            from ..table import read_volume
+            from ..table import read_volume, warn_implausible_scales
             from ..track import Sequence, TrackSettings, read_sequence, track
 
             references = [read_volume(reference_path, "a reference is one volume: give one time point")] if reference_path else None
@@ -339,6 +339,7 @@ class TrackWidget(QWidget):
                     raise FdlcError("choose a recording or a sequence first (a CSV with a t column, or a folder of CSVs)")
                 sequence = read_sequence([sequence_path])
                 frames = frames_of(sequence.times)
+            warn_implausible_scales([sequence.volumes[0], *(references or [])])  # as fdlc track: not in µm?
             if warming is not None:  # one model, used by one thread at a time
                 warming.join()
             ident = identifier
