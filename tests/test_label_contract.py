@@ -69,3 +69,69 @@ def test_one_test_into_a_folder_that_does_not_exist_yet(tmp_path):
     out = tmp_path / "results" / "run1" / "ids.csv"
     assert run("label", sample, "--out", out) == 0
     assert len(pd.read_csv(out)) == len(pd.read_csv(sample))
+
+
+# --------------------------------------------------------------------------------------------
+# Session 30's review of `fdlc label` against the contract
+
+
+def _sample_frame() -> pd.DataFrame:
+    return pd.read_csv(sample_paths()[1], keep_default_na=False)
+
+
+def test_a_neuron_far_out_is_answered_not_a_traceback(tmp_path):
+    """One finite but absurd coordinate (1e30: a sentinel, a unit slip in one row): the head
+    window slid 10 µm at a time over the whole span, so fdlc label died in np.arange
+    ('Maximum allowed size exceeded'); at 1e8 it took ~50 s. It now answers every row."""
+    df = _sample_frame().iloc[:60][["x_um", "y_um", "z_um", "R", "G", "B"]].copy()
+    df.loc[5, "x_um"] = 1e30
+    test = tmp_path / "outlier.csv"
+    df.to_csv(test, index=False)
+    out = tmp_path / "out.csv"
+    assert run("label", test, "--out", out) == 0
+    assert len(pd.read_csv(out)) == len(df)
+
+
+def test_written_positions_are_the_inputs_to_the_last_digit(tmp_path):
+    """Output x_um, y_um, z_um were written to 6 significant digits: 100012.43 came back as
+    100012 (a stage offset), and a benchmark joining the answer to its truth on the positions
+    found no partner. They read back exactly as given."""
+    df = _sample_frame().iloc[:40][["x_um", "y_um", "z_um", "R", "G", "B"]].copy()
+    rng = np.random.default_rng(0)
+    df[["x_um", "y_um", "z_um"]] += rng.uniform(0, 1e-3, (len(df), 3))
+    df["y_um"] += 1e5
+    test = tmp_path / "test.csv"
+    df.to_csv(test, index=False, float_format="%.10f")
+    out = tmp_path / "out.csv"
+    assert run("label", test, "--out", out) == 0
+    written = pd.read_csv(out)[["x_um", "y_um", "z_um"]].to_numpy()
+    assert np.array_equal(written, pd.read_csv(test)[["x_um", "y_um", "z_um"]].to_numpy())
+
+
+def test_cpd_answers_a_test_of_one_neuron(tmp_path, capsys):
+    """neuron_table.md: "Edge cases that must work: a test with 1 neuron". --method cpd refused
+    it (CPD cannot register fewer than 3 points); it now answers with every template name
+    equally likely."""
+    sample = _sample_frame()
+    test, template = tmp_path / "one.csv", tmp_path / "template.csv"
+    sample.iloc[:1][["x_um", "y_um", "z_um"]].to_csv(test, index=False)
+    sample.iloc[:60][["x_um", "y_um", "z_um", "label"]].to_csv(template, index=False)
+    out = tmp_path / "out.csv"
+    assert run("label", test, "--template", template, "--method", "cpd", "--out", out) == 0, capsys.readouterr().err
+    answer = pd.read_csv(out, keep_default_na=False)
+    assert len(answer) == 1 and answer["prob_1"].iloc[0] == answer["prob_2"].iloc[0] > 0
+
+
+def test_two_columns_named_alike_are_refused_and_nothing_is_written(tmp_path, capsys):
+    """`note,note ` (or `x_um, x_um`) are one name once spaces are stripped: fdlc label died with
+    a traceback, after the outputs of the tests before had been written."""
+    sample = _sample_frame()
+    good, bad = tmp_path / "good.csv", tmp_path / "bad.csv"
+    sample.iloc[:40].to_csv(good, index=False)
+    rows = [f"{x:.4f},{y:.4f},{z:.4f},a{i},b{i}" for i, (x, y, z) in enumerate(sample[["x_um", "y_um", "z_um"]].to_numpy()[:12])]
+    bad.write_text("x_um,y_um,z_um,note,note \n" + "\n".join(rows) + "\n")
+    out = tmp_path / "outdir"
+    assert run("label", good, bad, "--out", out) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "note" in err[0], err
+    assert not out.exists() or not any(out.iterdir())

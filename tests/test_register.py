@@ -442,3 +442,20 @@ def test_a_partial_view_of_a_smaller_worm_is_placed_on_its_names(corpus_path):
         placed_right = sum(_placement_error(replace(t, xyz=t.xyz * size), atlas, mirrored_relative_to(atlas, t)) < 4.0
                            for t in tests)
         assert placed_right >= 10, (size, placed_right)
+
+
+def test_head_window_starts_are_one_per_distinct_window_of_the_whole_slide():
+    """The head window slides 10 µm at a time; only the first start of each distinct set of
+    neurons is scored (the same answer as every start), so a neuron at 1e30 µm no longer makes
+    1e29 windows."""
+    from napari_fdlc.register import _window_starts
+
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        x = rng.uniform(-50, rng.uniform(100, 800), rng.integers(5, 200)) + rng.choice([0.0, 1e5])
+        length, step = rng.uniform(20, 150), 10.0
+        slide = np.arange(x.min(), x.max() - length + step, step)
+        inside = [tuple(np.flatnonzero((x >= s) & (x <= s + length))) for s in slide]
+        firsts = [s for k, s in enumerate(slide) if k == 0 or inside[k] != inside[k - 1]]
+        np.testing.assert_allclose(_window_starts(x, length, step), firsts, rtol=0, atol=1e-6)
+    assert len(_window_starts(np.r_[rng.uniform(0, 100, 60), 1e30], 100.0, 10.0)) < 20

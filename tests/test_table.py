@@ -114,3 +114,30 @@ def test_no_corpus_table_or_sparse_subset_looks_like_pixels(corpus_path):
         for n in (15, 30, 50, 160):
             if len(table) > n:
                 assert spread_factor(table.xyz[rng.choice(len(table), n, replace=False)]) < TOO_SPREAD, (worm.name, n)
+
+
+@pytest.mark.parametrize("header", ["x_um,y_um,z_um,note,note ", "x_um,y_um,z_um, x_um"])
+def test_two_columns_that_are_one_name_without_spaces_are_refused(tmp_path, header):
+    """Spaces around column names are stripped; two names that became one made df[c] a frame
+    and a traceback further on."""
+    path = tmp_path / "t.csv"
+    path.write_text(header + "\n" + "\n".join(f"{i},{i * 2},{i % 3},{i},{i}" for i in range(12)) + "\n")
+    with pytest.raises(TableError, match="two columns are named"):
+        read_table(path)
+
+
+def test_a_neuropal_id_exports_problems_name_its_own_columns(tmp_path):
+    """A bad cell of a NeuroPAL_ID export was reported in column 'x_um', which that file does
+    not have; its column is 'Real X (um)'."""
+    from napari_fdlc.reference import generate_worm
+
+    npid = tmp_path / "npid.csv"
+    write_neuropal_id(generate_worm(seed=3), npid)
+    lines = npid.read_text().splitlines()
+    header = next(i for i, line in enumerate(lines) if "Real X (um)" in line)
+    row = lines[header + 2].split(",")
+    row[lines[header].split(",").index("Real X (um)")] = "abc"
+    lines[header + 2] = ",".join(row)
+    npid.write_text("\n".join(lines) + "\n")
+    with pytest.raises(TableError, match=r"column 'Real X \(um\)': abc"):
+        read_table(npid)

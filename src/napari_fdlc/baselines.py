@@ -36,11 +36,15 @@ def _one_hot(n: int, m: int, rows, cols) -> np.ndarray:
     return probs
 
 
+def _distinct_positions(table: NeuronTable) -> int:
+    return len(np.unique(np.round(np.asarray(table.xyz, float), 6), axis=0))
+
+
 def _check_spread(*tables: NeuronTable, method: str) -> None:
     """The baselines scale each table by its spread and CPD fits a Gaussian width to it: a table
     of fewer than 3 distinct positions has none (a division by zero, then NaN everywhere)."""
     for t in tables:
-        distinct = len(np.unique(np.round(np.asarray(t.xyz, float), 6), axis=0))
+        distinct = _distinct_positions(t)
         if distinct < 3:
             raise FdlcError(f"{t.source}: {distinct} distinct neuron position(s); the {method} baseline needs at least 3")
 
@@ -73,7 +77,13 @@ def floor_match(template: NeuronTable, test: NeuronTable, use_colour: bool = Fal
 def cpd_match(template: NeuronTable, test: NeuronTable, use_colour: bool = False, max_iterations: int = 50) -> np.ndarray:
     """Non-rigid CPD from the template onto the test in each of the 16 orientations; the one
     with the smallest mean distance to its nearest neighbour wins. Probabilities (N_test,
-    M_template + 1). Position only: ``use_colour`` is accepted for the shared signature."""
+    M_template + 1). Position only: ``use_colour`` is accepted for the shared signature.
+
+    A test of 1 or 2 distinct positions (which ``fdlc label`` must answer) cannot be registered:
+    every template neuron is then as likely as the others, and as "no match"."""
+    if _distinct_positions(test) < 3:
+        _check_spread(template, method="CPD")
+        return np.full((len(test), len(template) + 1), 1.0 / (len(template) + 1))
     return cpd_search(template, test, max_iterations)[0]
 
 

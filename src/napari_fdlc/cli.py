@@ -132,6 +132,8 @@ def _run_train(args) -> int:
     from .model import model_files
     from .train import TrainConfig, train
 
+    if args.resume and args.init_from:
+        raise FdlcError("--resume continues the checkpoint at --out and --init-from starts a new run from other weights: give one")
     if args.config:
         cfg = TrainConfig.from_json(args.config)
     elif args.resume or args.calibrate_only:
@@ -147,8 +149,6 @@ def _run_train(args) -> int:
         if value is not None:
             setattr(cfg, key, value)
     cfg.seed = args.seed if args.seed is not None else cfg.seed
-    if args.resume and args.init_from:
-        raise FdlcError("--resume continues the checkpoint at --out and --init-from starts a new run from other weights: give one")
     if args.config and not (args.out or args.resume or args.calibrate_only) and \
             model_files(cfg.out)[1].resolve() == Path(args.config).resolve():
         raise FdlcError(f"{args.config}: a new run from this checkpoint's configuration would replace the checkpoint; "

@@ -146,7 +146,8 @@ def label_files(
                      "(--chirality decides yourself; --no-shared-handedness lets each recording decide alone)")
     else:
         results = [cpd_labelling(t, template_tables, use_colour) for t in test_tables]
-    for test, result, path in zip(test_tables, results, paths):
+    frames = []  # every answer made before any is written: a failure leaves no output behind
+    for test, result in zip(test_tables, results):
         note = smaller_worm_note(test, result)
         if note:
             warn(note)
@@ -154,7 +155,9 @@ def label_files(
         if kept is not None:
             warn(f"{test.source}: {len(test) - kept} neuron(s) lie beyond the head (the view reaches into the body): "
                  "they get no name")
-        write_table(labelling_frame(test, result, top_k), path)
+        frames.append(labelling_frame(test, result, top_k))
+    for frame, path in zip(frames, paths):
+        write_table(frame, path)
     return paths
 
 

@@ -333,7 +333,7 @@ def head_window(test: NeuronTable, mixture: Mixture, use_colour: bool = True,
     if np.ptp(x) <= length:  # body_reach(test) <= reach
         return None
     best, best_gain = None, -np.inf
-    for low in np.arange(x.min(), x.max() - length + HEAD_WINDOW_STEP_UM, HEAD_WINDOW_STEP_UM):
+    for low in _window_starts(x, length, HEAD_WINDOW_STEP_UM):
         rows = np.flatnonzero((x >= low) & (x <= low + length))
         if len(rows) < 4:
             continue
@@ -342,6 +342,26 @@ def head_window(test: NeuronTable, mixture: Mixture, use_colour: bool = True,
         if gain > best_gain:
             best, best_gain = rows, gain
     return best
+
+
+def _window_starts(x: np.ndarray, length: float, step: float) -> np.ndarray:
+    """The starts ``x.min() + k * step`` of the windows [start, start + length] that slide over
+    ``x``, one per distinct set of points inside (the first start of each): the windows are
+    scored in this order, so the answer is that of every start, but a neuron far out (a unit
+    slip in one row, 1e8 µm) no longer makes span / step windows to go through."""
+    x0 = float(x.min())
+    count = np.ceil((x.max() - length + step - x0) / step)  # starts of the whole slide (np.arange's count)
+    # A point enters a window at k = (x - length - x0) / step and leaves after k = (x - x0) / step;
+    # between such changes the window holds the same points. Neighbours of each change are
+    # kept as well, so that rounding cannot hide one.
+    changes = np.concatenate([np.ceil((x - length - x0) / step), np.floor((x - x0) / step) + 1, [0.0]])
+    k = np.unique(np.clip(np.concatenate([changes - 1, changes, changes + 1]), 0, count - 1))
+    starts = x0 + k * step
+    xs = np.sort(x)
+    first, last = np.searchsorted(xs, starts, side="left"), np.searchsorted(xs, starts + length, side="right")
+    distinct = np.ones(len(k), dtype=bool)
+    distinct[1:] = (first[1:] != first[:-1]) | (last[1:] != last[:-1])
+    return starts[distinct]
 
 
 def body_reach(table: NeuronTable, mixture: Mixture) -> float:

@@ -262,7 +262,8 @@ def _record_lines(text: str, skiprows: int) -> list[int]:
     return starts[1:]  # the first is the header
 
 
-def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, allow_empty: bool) -> np.ndarray:
+def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, allow_empty: bool,
+                    shown_as: str | None = None) -> np.ndarray:
     raw = df[column].astype(str).str.strip()
     values = pd.to_numeric(raw.where(raw != "", "nan"), errors="coerce").to_numpy(dtype=np.float64, copy=True)
     bad = ~np.isfinite(values)
@@ -273,27 +274,36 @@ def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, a
         shown = raw.iloc[row] or "an empty cell"
         lines = _record_lines(*df.attrs["csv"]) if "csv" in df.attrs else []
         line = lines[row] if len(lines) == len(df) else row + first_line
-        raise TableError(f"{name}: line {line}, column '{column}': {shown!s} is not a finite number")
+        raise TableError(f"{name}: line {line}, column '{shown_as or column}': {shown!s} is not a finite number")
     return values
 
 
 def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line: int = 2, names: bool = True,
-                         unique_names: bool = True) -> NeuronTable:
-    """Validate a data frame in our column layout and turn it into a :class:`NeuronTable`."""
+                         unique_names: bool = True, file_columns: dict[str, str] | None = None) -> NeuronTable:
+    """Validate a data frame in our column layout and turn it into a :class:`NeuronTable`.
+    ``file_columns``: our column name -> the file's, for messages about a file in another
+    layout (a NeuroPAL_ID export's 'Real X (um)')."""
     df = df.copy()
     df.columns = [str(c).strip() for c in df.columns]
+    twice = df.columns[df.columns.duplicated()]
+    if len(twice):
+        raise TableError(f"{source}: two columns are named '{twice[0]}' (spaces around names do not count); "
+                         "give each column its own name")
+    shown = file_columns or {}
     missing = [c for c in COORDS if c not in df.columns]
     if missing:
         raise TableError(
-            f"{source}: missing column(s) {', '.join(missing)} (a neuron table needs x_um, y_um, z_um)"
+            f"{source}: missing column(s) {', '.join(shown.get(c, c) for c in missing)} "
+            f"(a neuron table needs {', '.join(shown.get(c, c) for c in COORDS)})"
         )
     if len(df) == 0:
         raise TableError(f"{source}: the table has no rows")
-    xyz = np.stack([_numeric_column(df, c, source, first_line, allow_empty=False) for c in COORDS], axis=1)
+    xyz = np.stack([_numeric_column(df, c, source, first_line, allow_empty=False, shown_as=shown.get(c, c))
+                    for c in COORDS], axis=1)
     colours = {}
     for c in COLOUR_CHANNELS:
         if c in df.columns:
-            values = _numeric_column(df, c, source, first_line, allow_empty=True)
+            values = _numeric_column(df, c, source, first_line, allow_empty=True, shown_as=shown.get(c, c))
             if np.isnan(values).all():
                 continue
             # A neuron without a reading gets the volume's median so that one gap does not
@@ -345,12 +355,20 @@ def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int, names: bool 
         ours["label"] = ids
         ours = ours.drop(columns=["User ID"])
     ours = ours.loc[:, [c for c in ours.columns if c and not c.startswith("Unnamed:")]]
-    return table_from_dataframe(ours, source=name, first_line=first_line, names=names, unique_names=unique_names)
+    theirs = {v: k for k, v in _NPID_TO_OURS.items() if k in df.columns or v not in df.columns}
+    return table_from_dataframe(ours, source=name, first_line=first_line, names=names, unique_names=unique_names,
+                                file_columns=theirs)
 
 
 def write_table(table: NeuronTable | pd.DataFrame, path: str | os.PathLike) -> None:
     """Write our CSV layout atomically (temporary file, then rename)."""
     df = table.to_dataframe() if isinstance(table, NeuronTable) else table
+    # Positions to the last digit that tells two floats apart (the shortest text that reads
+    # back the same): 6 significant digits put a neuron 0.5 µm off at a stage offset of 1e5
+    # µm, and a table joined on its positions found no partner. Other numbers keep 6.
+    exact = [c for c in COORDS if c in df.columns and pd.api.types.is_float_dtype(df[c])]
+    if exact:
+        df = df.assign(**{c: [repr(v) if np.isfinite(v) else "" for v in df[c].to_numpy(float).tolist()] for c in exact})
     with atomic_write(path, "w", encoding="utf-8", newline="") as handle:
         df.to_csv(handle, index=False, float_format="%.6g")
 

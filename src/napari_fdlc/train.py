@@ -193,8 +193,12 @@ class TrainConfig:
     def from_checkpoint(cls, path: str | Path) -> "TrainConfig":
         """The configuration a checkpoint's JSON records it was trained with (its ``out``: here)."""
         path = Path(path)
-        if not path.exists():
-            raise FdlcError(f"{path}: no checkpoint there (give --out, or --config)")
+        try:
+            recorded = "train_config" in json.loads(path.read_text())
+        except (OSError, ValueError, TypeError) as exc:
+            raise FdlcError(f"{path}: no checkpoint record to go on from ({exc}); give --out, or --config") from None
+        if not recorded:
+            raise FdlcError(f"{path}: the checkpoint records no training configuration; give --config")
         cfg = cls.from_json(path)
         cfg.out = str(path.with_suffix(""))
         return cfg
