@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -292,3 +293,114 @@ def test_one_name_decided_twice_keeps_one_decision(tmp_path, capsys):
     assert loaded.user_id.count("AVAL") == 1 and "decided for neurons 0 and 2" in capsys.readouterr().err
     s.seed_decisions({3: Decision("AVAL", 1.0, "corrected")})
     assert s.user_id.count("AVAL") == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Session 30's review
+
+# One path component longer than any file system allows (255 bytes): stat() on it fails with
+# ENAMETOOLONG, which pathlib's exists()/is_file()/is_dir() re-raise (Python 3.11-3.13), just as
+# they re-raise EACCES for a path inside a folder the user may not enter (not reproducible as root).
+TOO_LONG = "w" * 300
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        '"extra": [1, 2]',
+        '"extra": "radius_um"',
+        '"order": [1e400, 1, 2, 3]',
+    ],
+    ids=["extra-list", "extra-string", "order-infinite"],
+)
+def test_a_damaged_session_file_is_one_fdlc_error_line(tmp_path, damage):
+    """A damaged session file is one FdlcError line (the widget then sets it aside, docs/gui.md
+    §5). An ``extra`` that is not an object (AttributeError) and an infinite number in ``order``
+    (OverflowError) escaped as tracebacks, and reopening the image failed."""
+    d = _session().to_dict()
+    key = damage.split(":")[0].strip('"')
+    d.pop(key)
+    text = json.dumps(d)[:-1] + ", " + damage + "}"
+    path = tmp_path / "worm.tif.fdlc-session.json"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(FdlcError):
+        ReviewSession.load(path)
+
+
+def test_reopening_finds_the_session_when_the_file_beside_the_image_cannot_be_probed(tmp_path):
+    """Where the file beside the image cannot be written (a name too long; a folder the user may
+    not enter), the session goes to the user's data folder and is found there again; probing
+    the path beside the image raised OSError, and the decisions were never restored."""
+    image = tmp_path / (("w" * 236) + ".tif")  # 240 bytes: a valid file name
+    image.write_bytes(b"II*\x00")
+    s = _session(image=str(image), path=session_file_for(image))
+    s.accept(0)  # beside the image fails (name too long): saved in the user's data folder
+    assert s.path.is_file() and s.last_save_error is None
+    assert find_session(image) == s.path
+
+
+def test_export_to_a_path_that_cannot_be_written_is_an_fdlc_error(tmp_path):
+    """An export path that cannot even be probed (ENAMETOOLONG, EACCES) is one FdlcError line;
+    the checks before the write raised a raw OSError."""
+    s = _session()
+    s.accept(0)
+    for fmt in ("fdlc", "neuropal_id"):
+        with pytest.raises(FdlcError):
+            s.export(tmp_path / (TOO_LONG + ".csv"), format=fmt)
+        with pytest.raises(FdlcError):
+            s.export(tmp_path / TOO_LONG / "ids.csv", format=fmt)
+
+
+def test_a_session_whose_image_is_given_as_a_path_is_autosaved(tmp_path):
+    """``image=Path(...)`` (the natural scripting call) is autosaved; the Path went into the
+    JSON and every autosave failed silently ('not JSON serializable' in last_save_error)."""
+    image = tmp_path / "worm.tif"
+    image.write_bytes(b"II*\x00")
+    path = session_file_for(image)
+    s = _session(image=image, path=path)
+    s.accept(0)
+    assert s.last_save_error is None, s.last_save_error
+    assert path.is_file() and ReviewSession.load(path).status[0] == "accepted"
+
+
+def test_seeding_decisions_for_rows_the_table_lacks_changes_nothing(tmp_path):
+    """Decisions for a row the table lacks are refused before any is set; the earlier rows used
+    to be set in memory already (in no file, no undo step, no listener told)."""
+    path = tmp_path / "worm.tif.fdlc-session.json"
+    s = _session(path=path)
+    s.accept(3)  # saved
+    decisions = {0: Decision("AVAL", 1.0, "accepted"), 1: Decision("RMDL", 1.0, "corrected"), 7: Decision("AVAR", 1.0, "corrected")}
+    with pytest.raises(FdlcError):
+        s.seed_decisions(decisions)
+    on_disk = ReviewSession.load(path)
+    assert s.user_id == on_disk.user_id == ["", "", "", "RMDR"]
+
+
+def test_a_session_folder_given_with_a_tilde_is_the_home_folder(tmp_path, monkeypatch):
+    """``FDLC_SESSION_DIR=~/fdlc-sessions`` where no shell expands it (a conda env var, a quoted
+    export) is the home folder's, wherever napari starts; it was ``./~/fdlc-sessions`` of the
+    folder napari started from, and another start did not find the sessions."""
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.setenv("FDLC_SESSION_DIR", "~/fdlc-sessions")
+    first, second = tmp_path / "started-here", tmp_path / "then-here"
+    first.mkdir()
+    second.mkdir()
+    monkeypatch.chdir(first)
+    s = _session(image="sample:neuropal", path=session_file_for("sample:neuropal"))
+    s.accept(0)
+    assert Path(s.path).is_absolute() and home in Path(s.path).parents
+    monkeypatch.chdir(second)
+    found = find_session("sample:neuropal")
+    assert found is not None and ReviewSession.load(found).status[0] == "accepted"
+
+
+def test_seeding_never_gives_a_name_held_by_the_sessions_own_decision_to_a_second_neuron(tmp_path):
+    """A row given no decision to seed (status 'auto') keeps its own name, which stays held:
+    AVAL, decided on neuron 0, was also given to neuron 2 without a warning."""
+    s = _session()
+    s.assign(0, "AVAL")
+    s.seed_decisions({0: Decision("", float("nan"), "auto"), 2: Decision("AVAL", 1.0, "corrected")})
+    named = [n for n in s.final_names() if n]
+    assert s.user_id.count("AVAL") == 1 and len(named) == len(set(named)), s.final_names()

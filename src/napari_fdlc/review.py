@@ -70,8 +70,8 @@ REVIEW_COLUMNS = (
 def user_session_dir() -> Path:
     """The user's data folder for sessions (``$FDLC_SESSION_DIR`` overrides platformdirs)."""
     env = os.environ.get("FDLC_SESSION_DIR")
-    if env:
-        return Path(env)
+    if env:  # '~/sessions' as a shell would mean it, and not relative to where napari started
+        return Path(env).expanduser().absolute()
     import platformdirs
 
     return Path(platformdirs.user_data_dir("napari-fdlc", appauthor=False)) / "sessions"
@@ -121,7 +121,16 @@ def _writable_folder(folder: Path) -> bool:
         return False
     if folder == _package_dir() or _package_dir() in folder.parents:
         return False  # never write into the installed package (bundled sample, editable installs)
-    return folder.is_dir() and os.access(folder, os.W_OK | os.X_OK)
+    return _is(folder, Path.is_dir) and os.access(folder, os.W_OK | os.X_OK)
+
+
+def _is(path: Path, test) -> bool:
+    """``test(path)`` (Path.is_file, Path.is_dir), False where the path cannot even be probed
+    (a name too long, a folder the user may not enter): not there, as far as sessions go."""
+    try:
+        return test(path)
+    except OSError:
+        return False
 
 
 def user_session_file(key: str) -> Path:
@@ -151,7 +160,7 @@ def find_session(image: str | os.PathLike) -> Path | None:
         path = Path(key)
         candidates.append(path.parent / (path.name + SESSION_SUFFIX))
     candidates.append(user_session_file(key))
-    existing = [c for c in candidates if c.is_file()]
+    existing = [c for c in candidates if _is(c, Path.is_file)]
     # The latest: after a save beside the image failed, the session went on in the user's folder.
     return max(existing, key=lambda c: c.stat().st_mtime_ns) if existing else None
 
@@ -292,7 +301,7 @@ class ReviewSession:
         n = len(table)
         self.threshold = _check_threshold(threshold)
         self.voxel_size_zyx = tuple(float(v) for v in voxel_size_zyx) if voxel_size_zyx is not None else None
-        self.image = image
+        self.image = os.fspath(image) if image is not None else None  # a Path too (saved as JSON text)
         self.path = Path(path) if path is not None else None
         self.vocabulary: list[str] = sorted(set(names or ()))
         self.current: int | None = None
@@ -520,7 +529,10 @@ class ReviewSession:
             xyz = np.column_stack([np.asarray(nd[c], dtype=float) for c in COORDS])
             n = len(xyz)
             colours = {c: np.asarray(_nan(nd[c]), dtype=float) for c in COLOUR_CHANNELS if c in nd}
-            extra = pd.DataFrame({k: v for k, v in (d.get("extra") or {}).items() if len(v) == n}, index=range(n))
+            extra = d.get("extra") or {}
+            if not isinstance(extra, dict):
+                raise TypeError(f"extra is {type(extra).__name__}, not an object of columns")
+            extra = pd.DataFrame({k: v for k, v in extra.items() if isinstance(v, list) and len(v) == n}, index=range(n))
             table = NeuronTable(xyz, colours, extra=extra, source=source)
             voxel = d.get("voxel_size_zyx")
             if voxel is not None and (len(voxel) != 3 or not all(math.isfinite(float(v)) and float(v) > 0 for v in voxel)):
@@ -545,7 +557,7 @@ class ReviewSession:
             order = [int(i) for i in d.get("order") or range(n)]
             s.order = order if sorted(order) == list(range(n)) else list(range(n))
             session.settings = dict(d.get("settings") or {})
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
+        except (KeyError, TypeError, ValueError, IndexError, OverflowError) as exc:
             raise FdlcError(f"{source}: damaged session file ({type(exc).__name__}: {exc})") from None
         bad = [st for st in s.status if st not in STATUSES]
         lengths = {len(s.auto_id), len(s.user_id), len(s.status), len(s.user_conf), len(s.auto_conf), len(s.cand_p)}
@@ -719,12 +731,12 @@ class ReviewSession:
         of an earlier session or of a table read back from our CSV. Names held twice are
         dropped with a warning."""
         s = self._s
-        # the session's own decisions elsewhere hold their names too
-        seen: dict[str, int] = {name: row for row, name in enumerate(s.user_id) if name and row not in decisions}
-        for i, d in sorted(decisions.items()):
-            i = self._row(i)
-            if not d.name or d.status not in STATUSES or d.status == "auto":
-                continue
+        # Every row checked before any is set: a row the table lacks leaves the session as it was.
+        given = {self._row(i): d for i, d in decisions.items()}
+        given = {i: d for i, d in given.items() if d.name and d.status in STATUSES and d.status != "auto"}
+        # the session's own decisions elsewhere (and on rows given nothing to set) hold their names too
+        seen: dict[str, int] = {name: row for row, name in enumerate(s.user_id) if name and row not in given}
+        for i, d in sorted(given.items()):
             if d.name in seen:
                 warn(f"{d.name} decided for neurons {seen[d.name]} and {i}: kept on {seen[d.name]} only")
                 continue
@@ -866,15 +878,15 @@ class ReviewSession:
             raise FdlcError(f"export format '{format}': use 'fdlc' or 'neuropal_id'")
         if not len(self):
             raise FdlcError("no neurons to export")
-        if str(path).endswith(("/", os.sep)) or Path(path).is_dir():
-            raise FdlcError(f"{path}: is a folder; give a file name")
-        path = Path(path)
-        if self.path is not None and path.resolve() == self.path.resolve():
-            # the next edit's autosave would replace the export (and the session would be gone until then)
-            raise FdlcError(f"{path}: is where this session autosaves; choose another name")
-        if path.exists() and not overwrite:
-            raise FdlcError(f"{path}: already exists; choose another name or allow overwriting")
         try:
+            if str(path).endswith(("/", os.sep)) or Path(path).is_dir():
+                raise FdlcError(f"{path}: is a folder; give a file name")
+            path = Path(path)
+            if self.path is not None and path.resolve() == self.path.resolve():
+                # the next edit's autosave would replace the export (and the session would be gone until then)
+                raise FdlcError(f"{path}: is where this session autosaves; choose another name")
+            if path.exists() and not overwrite:
+                raise FdlcError(f"{path}: already exists; choose another name or allow overwriting")
             if format == "fdlc":
                 write_table(self.to_dataframe(), path)
             else:
