@@ -494,3 +494,68 @@ def test_an_axis_of_unknown_meaning_is_asked_for_not_called_2d(tmp_path):
     tifffile.imwrite(path, np.zeros((2, 5, 16, 16), np.uint16))
     with pytest.raises(FdlcError, match="unknown image axes 'CQYX'"):
         read_stack(path, axes="CQYX")
+
+
+# ----- Session 30's review -------------------------------------------------------------------
+
+
+def _zcyx(nz=5, nc=2, ny=16, nx=16):
+    return ((np.arange(nz * nc * ny * nx) * 7) % 4000 + 1).astype(np.uint16).reshape(nz, nc, ny, nx)
+
+
+def test_an_imagej_file_over_4gb_read_lazily_has_all_its_planes(tmp_path, monkeypatch):
+    """ImageJ writes no BigTIFF: over 4 GB its hyperstacks have one page header and the planes
+    after it (tifffile's truncate=True). The lazy reader made one block per header and died in a
+    reshape (ValueError traceback); it now maps the planes from the file."""
+    data = _zcyx()
+    path = tmp_path / "big_fiji.tif"
+    tifffile.imwrite(path, data, imagej=True, truncate=True, resolution=(4.0, 4.0),
+                     metadata={"axes": "ZCYX", "unit": "micron", "spacing": 1.5})
+    monkeypatch.setattr(images, "LAZY_BYTES", 0)
+    lazy = read_stack(path)
+    assert lazy.is_lazy
+    np.testing.assert_array_equal(np.asarray(lazy.data), data.transpose(1, 0, 2, 3))
+
+
+def test_an_imagej_stack_with_a_1um_z_step_has_its_voxel_size(tmp_path):
+    """ImageJ leaves `spacing` out of a calibrated stack whose z step is 1 (its unit) and reads
+    it back as 1; such a stack was refused for want of a z voxel size."""
+    path = tmp_path / "fiji_1um.tif"
+    tifffile.imwrite(path, _zcyx(), imagej=True, resolution=(4.0, 4.0),
+                     metadata={"axes": "ZCYX", "unit": "micron", "Labels": ["TagRFP-T", "mNeptune2.5"] * 5})
+    assert "spacing" not in tifffile.TiffFile(path).imagej_metadata
+    assert read_stack(path).voxel_size_zyx == pytest.approx((1.0, 0.25, 0.25))
+
+
+def test_an_lzw_compressed_tiff_is_read(tmp_path):
+    """LZW, the commonest TIFF compression of other software, needs imagecodecs (now a
+    dependency): every LZW stack was refused as unreadable."""
+    planes = _zcyx(nz=4, nc=1)[:, 0]
+    path = tmp_path / "lzw.tif"
+    tifffile.imwrite(path, planes, compression="lzw")
+    stack = read_stack(path, axes="ZYX", voxel_size=(1.0, 0.25, 0.25), channels=["W"])
+    np.testing.assert_array_equal(np.asarray(stack.data)[0], planes)
+
+
+def test_a_multi_position_nd2_says_to_export_one_position(tmp_path):
+    """An ND2 of several stage positions was refused as 'unknown image axes PZCYX; give them
+    (--axes CZYX)', and --axes is not used for ND2: the advice could not help. One position
+    (P of 1) reads as a volume."""
+    several = FakeND2(np.zeros((2, 5, 2, 16, 16), np.uint16), {"P": 2, "Z": 5, "C": 2, "Y": 16, "X": 16}, names=("a", "b"))
+    with pytest.raises(images.ImageError) as exc:
+        read_nd2(tmp_path / "p.nd2", opener=lambda p: several, channels=["W", "R"])
+    one_line_error(exc, "2 positions", "export each position")
+    data = _zcyx()[None]
+    one = FakeND2(data, {"P": 1, "Z": 5, "C": 2, "Y": 16, "X": 16}, names=("a", "b"))
+    got = read_nd2(tmp_path / "p.nd2", opener=lambda p: one, channels=["W", "R"])
+    np.testing.assert_array_equal(got.data, data[0].transpose(1, 0, 2, 3))
+
+
+def test_axes_given_for_an_nd2_or_nwb_file_are_refused(tmp_path):
+    """--axes names the axes of a TIFF that does not record them; for ND2 and NWB it was
+    silently ignored."""
+    path = tmp_path / "w.nd2"
+    path.write_bytes(b"\xda\xce\xbe\x0a" + bytes(64))
+    with pytest.raises(images.ImageError) as exc:
+        read_stack(path, axes="CZYX")
+    one_line_error(exc, "--axes", "ND2")

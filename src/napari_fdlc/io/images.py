@@ -270,6 +270,8 @@ def _read(path, voxel_size, channels, axes, time: bool):
     if path.stat().st_size == 0:
         raise ImageError(f"{source}: the file is empty")
     kind = _sniff(path)
+    if axes and kind in ("nwb", "nd2"):
+        raise ImageError(f"{source}: --axes is for TIFF files that do not record their axes; a {kind.upper()} file records them")
     if kind == "tiff":
         return read_tiff(path, voxel_size=voxel_size, channels=channels, axes=axes, time=time)
     if kind == "nwb":
@@ -515,6 +517,8 @@ def _lazy_tiff(tif, series, source: str):
     lock = threading.Lock()
     page_shape = tuple(pages[0].shape)
     lead = tuple(series.shape[: len(series.shape) - len(page_shape)])
+    if len(pages) * int(np.prod(page_shape)) != int(np.prod(series.shape)):
+        return _lazy_contiguous(tif, series, page_shape, source)
 
     def load(i: int) -> np.ndarray:
         with lock:  # one file handle shared by all chunks
@@ -529,6 +533,25 @@ def _lazy_tiff(tif, series, source: str):
     ]
     # ``tif`` stays referenced by ``pages`` (and so stays open) for as long as the array lives.
     return da.stack(blocks).reshape(lead + page_shape)
+
+
+def _lazy_contiguous(tif, series, page_shape: tuple, source: str):
+    """A series whose planes follow one header uncompressed (ImageJ's files over 4 GB: ImageJ
+    writes no BigTIFF, so one IFD and the rest after it), as a dask array of its planes mapped
+    from the file."""
+    import dask.array as da
+
+    offset = getattr(series, "dataoffset", None)
+    if offset is None:  # compressed or scattered: no page to read a plane from
+        raise ImageError(f"{source}: the TIFF holds more planes than page headers and cannot be read piece by "
+                         "piece; save it as OME-TIFF (or BigTIFF)")
+    try:
+        planes = np.memmap(tif.filehandle.path, dtype=np.dtype(series.dtype).newbyteorder(tif.byteorder), mode="r",
+                           offset=offset, shape=tuple(series.shape))
+    except (ValueError, OSError) as exc:  # data past the end of the file
+        raise ImageError(f"{source}: the TIFF is truncated ({_first_line(exc)}); re-export it") from None
+    lead = len(series.shape) - len(page_shape)
+    return da.from_array(planes, chunks=(1,) * lead + page_shape)
 
 
 def _to_um(value, unit) -> float | None:
@@ -578,7 +601,9 @@ def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None]:
         known_unit = unit is not None and _to_um(1.0, unit) is not None
         x = _to_um(1.0 / xres, unit) if known_unit and xres and xres != 1 else None
         y = _to_um(1.0 / yres, unit) if known_unit and yres and yres != 1 else None
-        z = _to_um(meta.get("spacing"), unit) if known_unit and meta.get("spacing") else None
+        # ImageJ leaves spacing out when the z step is 1 (its unit) and reads it back as 1.
+        spacing = meta.get("spacing", 1.0 if int(meta.get("slices", 1) or 1) > 1 else None)
+        z = _to_um(spacing, unit) if known_unit and spacing else None
         names = None
         labels = meta.get("Labels")
         n_c = int(meta.get("channels", 1) or 1)
@@ -615,6 +640,9 @@ def read_nd2(
         raise ImageError(f"{source}: not a readable ND2 file ({_first_line(exc)})") from None
     try:
         sizes = dict(f.sizes)
+        if sizes.get("P", 1) > 1:  # stage positions: several worms (or fields), not one volume
+            raise ImageError(f"{source}: a multi-position ND2 ({sizes['P']} positions); fdlc reads one position at a "
+                             "time: export each position to its own file")
         axes = "".join(k.upper()[0] for k in sizes)
         shape = tuple(int(v) for v in sizes.values())
         try:
@@ -644,6 +672,8 @@ def read_nd2(
         f.close()
     if tuple(data.shape) != shape:
         raise ImageError(f"{source}: ND2 data shape {tuple(data.shape)} does not match its sizes {sizes}")
+    if "P" in axes:  # one position
+        data, axes = data[tuple(0 if a == "P" else slice(None) for a in axes)], axes.replace("P", "")
     return finish_stack(data, axes, source, voxel, names, voxel_size, channels, time=time)
 
 
