@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 from collections import Counter
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from napari_fdlc.errors import FdlcError
 from napari_fdlc.geometry import canonical_frame
 from napari_fdlc.identify import FEW_NEURONS, Identifier
 from napari_fdlc.model import CorrespondenceModel
-from napari_fdlc.reference import generate_worm, load_panel
+from napari_fdlc.reference import generate_worm, load_atlas, load_panel
 from napari_fdlc.table import NeuronTable
 
 
@@ -643,3 +644,118 @@ def test_a_flat_table_is_not_named_with_false_confidence(shipped, panel):
         confident += int(sure.sum())
         right += int((ids[sure] == worm.labels[sure]).sum())
     assert confident == 0 or right / confident >= 0.75, (right, confident)
+
+
+# ------------------------------------------------------------------------------------------------
+# Session 30's review of the Python API
+
+
+@pytest.fixture(scope="module")
+def generated_worm():
+    return generate_worm(seed=1)
+
+
+@pytest.fixture(scope="module")
+def test_table(generated_worm):
+    return NeuronTable(generated_worm.xyz, generated_worm.colours, source="test")  # unnamed: a table to be named
+
+
+@pytest.fixture(scope="module")
+def panel_answer(shipped, panel, test_table):
+    return shipped.label_panel(test_table, panel)
+
+
+# ------------------------------------------------------------------------------------------------
+def test_label_many_answers_a_test_the_same_whatever_comes_before_it(shipped):
+    """A test is answered the same whatever comes before it in label_many. The trace cache was
+    keyed on whether a mask was given, not on whether it had padding: a trace first made on an
+    unpadded chunk (one test of ~1400+ neurons) ran later padded chunks as if their padding rows
+    were neurons; a smaller test after a larger one moved by up to 0.5 in probability."""
+    settings = replace(shipped.settings, chirality="same")  # fewer candidate poses: faster
+    a = generate_worm(seed=3, n_unnamed=1300)
+    b = generate_worm(seed=4, n_unnamed=1250)
+    a, b = NeuronTable(a.xyz, a.colours, source="a"), NeuronTable(b.xyz, b.colours, source="b")
+    template = generate_worm(seed=2)
+    assert len(a) > len(b) > 1400  # the set-up: one test per chunk, a's chunks unpadded
+
+    def fresh():  # an identifier with an empty trace cache, as in a new process
+        return Identifier(shipped.model, settings, "cpu")
+
+    batched = fresh().label_many([a, b], [template])[1]
+    alone = fresh().label(b, [template])
+    assert np.abs(batched.probs - alone.probs).max() < 1e-3, np.abs(batched.probs - alone.probs).max()
+    assert batched.auto_id == alone.auto_id
+
+
+def test_an_all_nan_colour_channel_is_no_evidence(shipped, panel, generated_worm):
+    """A colour column without a single reading is no reading, like a constant one; it counted
+    as one (every neuron the median colour) and the panel fell from 44 to 24 % top-1."""
+    worm = generated_worm
+    nan = {c: np.full(len(worm), np.nan) for c in "RGB"}
+    try:
+        with_nan = shipped.label_panel(NeuronTable(worm.xyz, nan, source="nan"), panel)
+    except FdlcError:
+        return
+    position_only = shipped.label_panel(NeuronTable(worm.xyz, {}, source="none"), panel)
+    assert _top1(with_nan, worm.labels) >= _top1(position_only, worm.labels) - 0.03, (
+        _top1(with_nan, worm.labels), _top1(position_only, worm.labels))
+
+
+@pytest.mark.parametrize("written", ["{} ", " {}", "{}?"])
+def test_a_fixed_name_written_with_spaces_or_unsure_mark_is_not_given_twice(shipped, panel, test_table, panel_answer,
+                                                                           written):
+    """A user's name fixed as 'ADAL ', ' ADAL' or 'ADAL?' is the name ADAL (as a table's names
+    are read): it was taken for an unknown name and ADAL went to a second neuron too."""
+    j = next(i for i, n in enumerate(panel_answer.auto_id) if n)  # a neuron the panel names
+    name = panel_answer.auto_id[j]
+    k = (j + 1) % len(test_table)
+    try:
+        result = shipped.label_panel(test_table, panel, fixed={k: written.format(name)})
+    except FdlcError:
+        return
+    counts = Counter(n.strip().rstrip("?").strip() for n in result.auto_id if n)
+    assert counts[name] == 1, [(i, n) for i, n in enumerate(result.auto_id) if n and name in n]
+
+
+@pytest.mark.parametrize("changes", [
+    {"temperature": 0.0},  # label_panel: every probability and auto_conf NaN, silently
+    {"temperature": -0.3},  # label_panel: every auto_conf 0.0 (inverted calibration)
+    {"panel_temperature": 0.0},  # ZeroDivisionError in _sharpen
+    {"colour_sigma": 0.0},  # ZeroDivisionError in colour_log_likelihood
+    {"no_match_weight": 0.0},  # with a template: scipy "cost matrix is infeasible"
+    {"colour_weight": float("nan")},  # scipy "matrix contains invalid numeric entries"
+    {"chirality_doubt": 1.5},  # a mixture weight above 1
+    {"temperature": "0.3"},  # a string: TypeError deep in _calibrate
+])
+def test_out_of_range_inference_settings_are_refused(shipped, changes):
+    """Settings that cannot work are refused where they are given; a temperature of 0 made every
+    probability NaN silently, a width of 0 divided by zero, a NaN weight reached scipy."""
+    with pytest.raises(FdlcError):
+        shipped.with_settings(**changes)
+
+
+def test_label_panel_many_answers_every_test(shipped, panel, test_table, panel_answer):
+    """``first`` answers that do not match the tests one to one are refused; fewer used to drop
+    the remaining tests silently."""
+    other = generate_worm(seed=2)
+    tests = [test_table, NeuronTable(other.xyz, other.colours, source="other")]
+    try:
+        results = shipped.label_panel_many(tests, panel, first=[panel_answer])
+    except FdlcError:
+        return
+    assert len(results) == len(tests)
+
+
+def test_generate_worm_from_an_atlas_without_colour(tmp_path):
+    """An atlas without colour gives a worm without colour columns; it gave KeyError 'R'."""
+    atlas = load_atlas()
+    bare = replace(atlas, colour=np.full_like(atlas.colour, np.nan), colour_sd=np.full_like(atlas.colour_sd, np.nan))
+    path = tmp_path / "atlas.csv"
+    bare.save(path)
+    loaded = load_atlas(path)
+    assert not loaded.has_colour  # the set-up
+    try:
+        worm = generate_worm(seed=0, atlas=loaded)
+    except FdlcError:
+        return
+    assert len(worm) > 0 and worm.named.all() and not worm.colours

@@ -37,7 +37,9 @@ def has_colour(table: NeuronTable) -> bool:
 
 def _varies(values: np.ndarray) -> bool:
     finite = values[np.isfinite(values)]
-    return len(finite) < 3 or bool(np.ptp(finite) > 0)  # one or two neurons: nothing to tell
+    if not len(finite):  # no neuron read: no reading
+        return False
+    return len(values) < 3 or bool(np.ptp(finite) > 0)  # one or two neurons: nothing to tell
 
 
 def shared_channels(a: NeuronTable, b: NeuronTable) -> tuple[str, ...]:

@@ -20,6 +20,7 @@ napari's plugin discovery stay fast.
 from __future__ import annotations
 
 import json
+import math
 import threading
 from dataclasses import dataclass, replace
 from importlib import resources
@@ -117,6 +118,17 @@ def shipped_weights() -> Path:
 TEMPLATE_REACH_MARGIN = 1.3
 
 
+# (name, low, high, low excluded) of each numeric InferenceSettings field.
+_SETTING_RANGES = (
+    *((name, 0.0, math.inf, True) for name in ("temperature", "panel_temperature", "colour_sigma", "no_match_weight")),
+    *((name, 0.0, math.inf, False) for name in (
+        "colour_weight", "fallback_colour_weight", "mirror_penalty", "atlas_weight", "atlas_weight_position",
+        "panel_atlas_weight", "panel_atlas_weight_position", "warp_um")),
+    *((name, 0.0, 1.0, False) for name in (
+        "chirality_doubt", "template_chirality_doubt", "atlas_worm_weight", "atlas_worm_weight_position")),
+)
+
+
 @dataclass
 class InferenceSettings:
     refine_steps: int = 0  # affine re-alignment passes after the placement (measured: no gain yet)
@@ -183,6 +195,17 @@ class InferenceSettings:
     def __post_init__(self):
         if self.chirality not in CHIRALITIES:
             raise FdlcError(f"unknown chirality '{self.chirality}' (use {', '.join(CHIRALITIES)})")
+        # A value out of range fails far from here (a temperature of 0 made every probability
+        # NaN, silently; a colour width of 0 divided by zero): refused where it is given.
+        steps = self.refine_steps
+        if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
+            raise FdlcError(f"inference setting refine_steps must be a whole number of 0 or more (got {steps!r})")
+        for name, low, high, open_low in _SETTING_RANGES:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)) or \
+                    not math.isfinite(value) or not (low < value if open_low else low <= value) or not value <= high:
+                what = f"from {low} to {high}" if high < math.inf else ("above 0" if open_low else "0 or more")
+                raise FdlcError(f"inference setting {name} must be a number {what} (got {value!r})")
 
 
 class Identifier:
@@ -280,8 +303,11 @@ class Identifier:
         first use in ~0.1 s): the same numbers, 10-20 % less time."""
         if self.device != "cpu" or (tmpl_c is None) != (test_c is None):
             return self.model(tmpl, test, tmpl_mask, test_mask, tmpl_c, test_c)
-        from .model import trace_model
+        from .model import _real_mask, trace_model
 
+        # A mask without padding (a chunk of tests of one size) is no mask: the model drops it,
+        # so a trace made on it follows the unmasked path, and must not serve padded batches.
+        tmpl_mask, test_mask = _real_mask(tmpl_mask), _real_mask(test_mask)
         inputs = (tmpl, test, tmpl_mask, test_mask, tmpl_c, test_c)
         key = (tmpl.shape[0], test.shape[0], *(x is not None for x in inputs[2:]))
         traced = self._traced.get(key)
@@ -832,6 +858,8 @@ class Identifier:
         ``ADAPT_MIN_CONF`` or more in at least ``ADAPT_MIN_WORMS`` of them
         (:meth:`Atlas.with_colours_of`), and the tests are named again with a panel drawn from
         that atlas. ``info["adapted_colours"]`` counts the names whose colour was measured."""
+        if first is not None and len(first) != len(tests):
+            raise FdlcError(f"label_panel_many: {len(first)} first answers for {len(tests)} tests (one each)")
         results = list(first) if first is not None else [self.label_panel(t, panel, use_colour) for t in tests]
         if share_handedness:
             results = self._shared_handedness(tests, panel, use_colour, results)

@@ -156,10 +156,16 @@ def one_to_one(probs: np.ndarray, fixed: dict[int, int] | None = None, iteration
 def check_fixed(fixed: dict | None, n: int) -> dict[int, str]:
     """The user's decided names by row (``fixed``), checked against a test of ``n`` neurons:
     rows are whole numbers 0..n-1, and a name belongs to one neuron."""
+    from .table import parse_name
+
     rows_of = {}
-    for row, name in (fixed or {}).items():
+    for row, given in (fixed or {}).items():
         if isinstance(row, (bool, np.bool_)) or not isinstance(row, (int, np.integer)) or not 0 <= row < n:
-            raise FdlcError(f"decided name {name!r}: {row!r} is not a row of the test (0 to {n - 1})")
+            raise FdlcError(f"decided name {given!r}: {row!r} is not a row of the test (0 to {n - 1})")
+        # as a table's names are read: spaces around it and an unsure mark are not the name
+        name = parse_name(given)[0] if isinstance(given, str) else ""
+        if not name:
+            raise FdlcError(f"row {row}: {given!r} is not a neuron name")
         if name in rows_of:
             raise FdlcError(f"decided name {name!r} is on rows {rows_of[name]} and {row}: a name belongs to one neuron")
         rows_of[name] = int(row)

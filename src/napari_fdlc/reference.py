@@ -337,7 +337,8 @@ def load_panel(path: str | Path | None = None) -> Panel:
 def generate_worm(seed: int = 0, atlas: Atlas | None = None, n_unnamed: int = 0) -> NeuronTable:
     """A plausible labelled worm sampled from the atlas at the size of a median corpus worm,
     placed in a recording frame (random XY angle, positive coordinates), with raw-looking
-    positive colours; ``n_unnamed`` extra unlabelled neurons as a segmentation would find."""
+    positive colours (none from an atlas without colour); ``n_unnamed`` extra unlabelled
+    neurons as a segmentation would find."""
     atlas = atlas or load_atlas()
     rng = np.random.default_rng(seed)
     worm = atlas_worm(atlas, rng, keep_fraction=0.6)
@@ -352,7 +353,7 @@ def generate_worm(seed: int = 0, atlas: Atlas | None = None, n_unnamed: int = 0)
     xyz = xyz - xyz.min(0) + np.array([5.0, 5.0, 3.0])
     labels = np.concatenate([worm.labels, np.full(n_unnamed, "", dtype=object)])
     colours = {}
-    for ch in IDENTITY_CHANNELS:
+    for ch in IDENTITY_CHANNELS if atlas.has_colour else ():  # an atlas of worms without colour has none to give
         v = np.concatenate([worm.colours[ch], rng.normal(0, 1, n_unnamed)])
         colours[ch] = np.round(200 * np.exp(0.8 * v), 1)  # raw-looking positive intensities
     return NeuronTable(xyz, colours, labels, source=f"generated(seed={seed})")
