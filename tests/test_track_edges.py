@@ -155,3 +155,76 @@ def test_a_sequence_labelled_at_every_time_point_keeps_its_names(tmp_path, gentl
     df = pd.read_csv(out, keep_default_na=False)
     first = df[df["t"] == 0]
     assert (first["name"].to_numpy() == labelled[0].labels).all() and (first["name"] != "").sum() > 50
+
+
+# ----- session 30's review of fdlc track's inputs and output ---------------------------------------
+
+GENTLE_MOTION = SequenceParams(frames=3, bend_curvature=0.002, roll=0.05, xy_rotation=0.3, drift_um=4.0,
+                        drop_fraction=(0.0, 0.05), max_spurious=3, jitter_um=0.2)
+
+
+@pytest.fixture(scope="module")
+def gentle_sequence(worm):
+    return simulate_sequence(worm, 3, GENTLE_MOTION)
+
+
+def _write_exact(volumes, times, path):
+    """A sequence CSV whose t cells are exactly the text given (pandas, not write_table: the
+    input must hold the times as the user's own tool wrote them)."""
+    join_by_time(volumes, times).drop(columns=["label"]).to_csv(path, index=False)
+    return path
+
+
+def test_fractional_time_stamps_are_written_back_as_given(tmp_path, gentle_sequence):
+    """Time stamps in seconds come back as given (tracking.md: the input's t); written with 6
+    significant digits, 1700000000.0, .2 and .4 all came out as 1.7e+09, one time point."""
+    volumes, _ = gentle_sequence
+    times = ["1700000000.0", "1700000000.2", "1700000000.4"]
+    src = _write_exact(volumes, times, tmp_path / "seq.csv")
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(src), "--method", "geometry", "--quiet", "--out", str(out)]) == 0
+    df = pd.read_csv(out, dtype={"t": str})
+    written = [float(t) for t in df["t"].unique()]
+    assert written == [float(t) for t in times], df["t"].unique()
+    assert df.groupby("t", sort=False).size().tolist() == [len(v) for v in volumes]
+
+
+def test_a_bad_t_cell_is_reported_on_its_own_line_of_the_file(tmp_path, capsys):
+    """A bad t cell is reported at its own line of the file, as a bad coordinate is; after a
+    blank line it was reported one line early."""
+    src = tmp_path / "seq.csv"
+    src.write_text("t,x_um,y_um,z_um\n0,1,2,3\n0,4,5,6\n\n1,1,2,3\n,4,5,6\n")
+    out = tmp_path / "tracks.csv"
+    code = main(["track", str(src), "--method", "geometry", "--quiet", "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "line 6, column 't'" in err, err
+    assert not out.exists()
+
+
+def test_bad_weights_are_refused_before_a_recording_is_segmented(tmp_path, recording, capsys):
+    """Weights that cannot be read are refused before a recording is segmented, not after every
+    time point of it."""
+    path, _, _ = recording
+    out = tmp_path / "tracks.csv"
+    code = main(["track", str(path), "--weights", str(tmp_path / "no_such_model"), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and "no_such_model" in err, err
+    assert "segmented" not in err, err
+
+
+def test_a_repeated_name_in_a_long_labelled_sequence_is_one_warning(tmp_path, gentle_sequence, worm, capsys):
+    """A name repeated within the time points of a labelled sequence is one warning line (cli.md),
+    not one per time point."""
+    volumes, origins = simulate_sequence(worm, 3, SequenceParams(**{**GENTLE_MOTION.__dict__, "frames": 6}))
+    labelled = []
+    for v, origin in zip(volumes, origins):
+        names = np.array([worm.labels[o] if o >= 0 else "X" for o in origin], dtype=object)
+        names[:2] = "X"  # at least two placeholders in every volume
+        labelled.append(NeuronTable(v.xyz, v.colours, names))
+    src = tmp_path / "seq.csv"
+    join_by_time(labelled).to_csv(src, index=False)
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(src), "--method", "geometry", "--quiet", "--out", str(out)]) == 0
+    repeated = [line for line in capsys.readouterr().err.splitlines() if "more than once" in line]
+    assert len(repeated) <= 1, repeated

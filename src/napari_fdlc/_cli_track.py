@@ -80,6 +80,18 @@ def run(args: argparse.Namespace) -> int:
         raise FdlcError(f"--method {args.method} takes one reference")
     references = [read_volume(r, "a reference is one volume: give one time point (or name it with --reference-t)")
                   for r in args.reference]
+    # The models next: weights that cannot be read are refused before a recording's segmentation.
+    identifier = follower = None
+    if args.method == "fdlc":
+        from .identify import Identifier, default_identifier
+
+        if args.threads:
+            import torch
+
+            torch.set_num_threads(args.threads)
+        identifier = (Identifier.load(args.weights) if args.weights else default_identifier()).with_chirality(args.chirality)
+        if args.tracking_weights and args.follow_with == "tracking":
+            follower = Identifier.load(args.tracking_weights)
     recording = _image_recording(args.inputs)
     if recording is None:
         seq = read_sequence(args.inputs)
@@ -98,17 +110,6 @@ def run(args: argparse.Namespace) -> int:
     for raw in args.reference_t:
         references.append(_volume_at(seq, raw))
     warn_implausible_scales([seq.volumes[0], *references])
-    identifier = follower = None
-    if args.method == "fdlc":
-        from .identify import Identifier, default_identifier
-
-        if args.threads:
-            import torch
-
-            torch.set_num_threads(args.threads)
-        identifier = (Identifier.load(args.weights) if args.weights else default_identifier()).with_chirality(args.chirality)
-        if args.tracking_weights and args.follow_with == "tracking":
-            follower = Identifier.load(args.tracking_weights)
     start = time.perf_counter()
 
     def progress(done: int, total: int) -> None:

@@ -262,6 +262,13 @@ def _record_lines(text: str, skiprows: int) -> list[int]:
     return starts[1:]  # the first is the header
 
 
+def file_line(df: pd.DataFrame | None, row: int, first_line: int = 2) -> int:
+    """The line of the file on which data row ``row`` of ``df`` (a table read from a CSV, or
+    its ``text``) starts: blank lines and quoted line breaks counted, as an editor shows it."""
+    lines = _record_lines(*df.attrs["csv"]) if df is not None and "csv" in df.attrs else []
+    return lines[row] if df is not None and len(lines) == len(df) else row + first_line
+
+
 def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, allow_empty: bool,
                     shown_as: str | None = None) -> np.ndarray:
     raw = df[column].astype(str).str.strip()
@@ -272,9 +279,8 @@ def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, a
     if bad.any():
         row = int(np.argmax(bad))
         shown = raw.iloc[row] or "an empty cell"
-        lines = _record_lines(*df.attrs["csv"]) if "csv" in df.attrs else []
-        line = lines[row] if len(lines) == len(df) else row + first_line
-        raise TableError(f"{name}: line {line}, column '{shown_as or column}': {shown!s} is not a finite number")
+        raise TableError(f"{name}: line {file_line(df, row, first_line)}, column '{shown_as or column}': "
+                         f"{shown!s} is not a finite number")
     return values
 
 
@@ -317,30 +323,40 @@ def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line:
         labels = np.array([p[0] for p in parsed], dtype=object)
         conf = np.array([p[1] for p in parsed])
         if unique_names:
-            labels, conf = _drop_duplicate_names(labels, conf, source)
+            labels, conf, _ = _drop_duplicate_names(labels, conf, source)
     kept = [c for c in df.columns if c not in COORDS + COLOUR_CHANNELS + ("label",)]
     return NeuronTable(xyz, colours, labels, conf, df[kept].reset_index(drop=True), source, text=df.reset_index(drop=True))
 
 
-def with_unique_names(table: NeuronTable) -> NeuronTable:
-    """``table`` with a name that occurs more than once left on none of its rows (with one
-    warning), as :func:`read_table` reads one volume."""
-    table.labels, table.label_conf = _drop_duplicate_names(table.labels, table.label_conf, table.source)
+def with_unique_names(table: NeuronTable, say: bool = True) -> NeuronTable:
+    """``table`` with a name that occurs more than once left on none of its rows, as
+    :func:`read_table` reads one volume; ``say``: with one warning line (a caller splitting
+    many volumes says it once for all, :func:`repeated_names`)."""
+    table.labels, table.label_conf, _ = _drop_duplicate_names(table.labels, table.label_conf, table.source, say)
     return table
 
 
-def _drop_duplicate_names(labels: np.ndarray, conf: np.ndarray, source: str):
+def repeated_names(labels: np.ndarray) -> set[str]:
+    """The names that occur more than once in ``labels``."""
     names, counts = np.unique(labels[labels != ""], return_counts=True)
-    duplicated = set(names[counts > 1])
+    return set(names[counts > 1])
+
+
+def _drop_duplicate_names(labels: np.ndarray, conf: np.ndarray, source: str, say: bool = True):
+    duplicated = repeated_names(labels)
     if duplicated:
         mask = np.isin(labels, list(duplicated))
         labels = labels.copy()
         conf = conf.copy()
         labels[mask] = ""
         conf[mask] = 0.0
-        shown = ", ".join(sorted(duplicated)[:8]) + (" ..." if len(duplicated) > 8 else "")
-        warn(f"{source}: name(s) {shown} occur more than once; those rows are read as unnamed")
-    return labels, conf
+        if say:
+            warn(f"{source}: name(s) {_few(duplicated)} occur more than once; those rows are read as unnamed")
+    return labels, conf, duplicated
+
+
+def _few(names) -> str:
+    return ", ".join(sorted(names)[:8]) + (" ..." if len(names) > 8 else "")
 
 
 def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int, names: bool = True, unique_names: bool = True) -> NeuronTable:
@@ -363,10 +379,10 @@ def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int, names: bool 
 def write_table(table: NeuronTable | pd.DataFrame, path: str | os.PathLike) -> None:
     """Write our CSV layout atomically (temporary file, then rename)."""
     df = table.to_dataframe() if isinstance(table, NeuronTable) else table
-    # Positions to the last digit that tells two floats apart (the shortest text that reads
-    # back the same): 6 significant digits put a neuron 0.5 µm off at a stage offset of 1e5
-    # µm, and a table joined on its positions found no partner. Other numbers keep 6.
-    exact = [c for c in COORDS if c in df.columns and pd.api.types.is_float_dtype(df[c])]
+    # Positions and times to the last digit that tells two floats apart (the shortest text that
+    # reads back the same): 6 significant digits put a neuron 0.5 µm off at a stage offset of
+    # 1e5 µm, and made time stamps 1700000000.2 and .4 one time point. Other numbers keep 6.
+    exact = [c for c in (*COORDS, "t") if c in df.columns and pd.api.types.is_float_dtype(df[c])]
     if exact:
         df = df.assign(**{c: [repr(v) if np.isfinite(v) else "" for v in df[c].to_numpy(float).tolist()] for c in exact})
     with atomic_write(path, "w", encoding="utf-8", newline="") as handle:

@@ -47,11 +47,11 @@ import numpy as np
 import pandas as pd
 
 from ._blas import one_blas_thread
-from .errors import FdlcError, TableError
+from .errors import FdlcError, TableError, warn
 from .geometry import Warp, canonical_frame, fit_warp, position_evidence, squared_distances
 from .match import assign, assign_log, min_cost_matching
 from .simulate import bend
-from .table import COORDS, NeuronTable, read_table, read_volume, with_unique_names
+from .table import COORDS, NeuronTable, file_line, read_table, read_volume, repeated_names, with_unique_names
 
 UNTRACKED = -1
 
@@ -191,21 +191,30 @@ def split_by_time(table: NeuronTable) -> Sequence:
     bad = ~np.isfinite(t)
     if bad.any():
         row = int(np.argmax(bad))
-        raise TableError(f"{name}: line {row + 2}, column 't': {raw.iloc[row] or 'an empty cell'} is not a finite number")
+        raise TableError(f"{name}: line {file_line(table.text, row)}, column 't': {raw.iloc[row] or 'an empty cell'} "
+                         "is not a finite number")
     if raw.str.fullmatch(r"[+-]?\d+").all():
         # whole numbers (frame numbers, timestamps in ns) compared exactly: beyond 2**53 two of
         # them can be one float
         t = np.array([int(v) for v in raw], dtype=object)
-    values = np.unique(t)
-    volumes, times = [], []
-    for v in values:
-        rows = np.flatnonzero(t == v)
+    values, group = np.unique(t, return_inverse=True)
+    group = np.asarray(group).ravel()
+    rows_by_time = np.split(np.argsort(group, kind="stable"), np.cumsum(np.bincount(group, minlength=len(values)))[:-1])
+    volumes, times, repeated = [], [], {}
+    for v, rows in zip(values, rows_by_time):
         sub = table.subset(rows)
         sub.extra = sub.extra.drop(columns=["t"])
         sub.source = f"{name} (t={_time_value(v)})"
-        sub = with_unique_names(sub)
+        names = repeated_names(sub.labels)
+        if names:  # said once below, not once per time point
+            repeated[_time_value(v)] = names
+            with_unique_names(sub, say=False)
         volumes.append(sub)
         times.append(_time_value(v))
+    if repeated:
+        first = next(iter(repeated))
+        warn(f"{name}: name(s) {', '.join(sorted(set().union(*repeated.values()))[:8])} occur more than once within "
+             f"{len(repeated)} time point(s) (the first t={first}); those rows are read as unnamed")
     return Sequence(volumes, times, [""] * len(volumes))
 
 

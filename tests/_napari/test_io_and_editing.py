@@ -12,6 +12,7 @@ import pytest
 from napari_fdlc._napari._io import write_neuron_csv
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.review import SESSION_SUFFIX
+from napari_fdlc.table import NeuronTable, read_table, write_table
 
 
 def test_manifest_is_valid():
@@ -411,3 +412,117 @@ def test_a_table_opened_in_napari_shows_what_its_reader_warns_about(tmp_path, wo
     read_table_layer(str(path))
     messages = [str(r.message) for r in notification_manager.records[before:]]
     assert any(labels[named[0]] in m and "more than once" in m for m in messages), messages
+
+
+# ----- session 30's review of the readers, the writer and the sample -----------------------------
+
+
+def _small_named_worm(n=12, seed=0, offset=0.0):
+    rng = np.random.default_rng(seed)
+    xyz = rng.normal(0, 1, (n, 3)) * [30, 8, 6] + [60, 30, 15] + offset
+    labels = np.array([f"N{i}" for i in range(n)], dtype=object)
+    return NeuronTable(xyz, {c: rng.gamma(2.0, 100.0, n) for c in "RGB"}, labels)
+
+
+def test_a_table_of_several_time_points_opens_over_time_with_its_names(tmp_path):
+    """A table with a 't' column (fdlc segment of a recording, fdlc track, this plugin's writer)
+    opens as (t, z, y, x) points, each time point's names its own; it opened as one volume of
+    every time point, its names dropped as repeats."""
+    from napari_fdlc._napari._io import get_table_reader, write_neuron_csv
+    from napari_fdlc.track import join_by_time
+
+    worm = _small_named_worm()
+    moved = NeuronTable(worm.xyz + 1.0, worm.colours, worm.labels)
+    path = tmp_path / "segmented.csv"
+    write_table(join_by_time([worm, moved], [0, 1]), path)
+    reader = get_table_reader(str(path))
+    assert reader is not None
+    data, kwargs, kind = reader(str(path))[0]
+    assert kind == "points"
+    assert data.shape == (2 * len(worm), 4), f"opened as {data.shape}: the time points are merged into one volume"
+    assert sorted(set(data[:, 0])) == [0, 1]
+    labels = list(kwargs["features"]["label"])
+    assert labels == list(worm.labels) * 2, "the names (one per time point) were dropped as repeats"
+
+    # the plugin's own round trip: points over time saved with its writer, opened again
+    points = np.column_stack([np.repeat([0.0, 1.0], len(worm)), np.vstack([worm.xyz, moved.xyz])[:, ::-1]])
+    saved = write_neuron_csv(str(tmp_path / "saved.csv"), points, {"scale": (1, 1, 1, 1)})[0]
+    data, _, _ = get_table_reader(saved)(saved)[0]
+    assert data.shape[1] == 4, "napari-fdlc cannot open over time the file its writer wrote over time"
+
+
+def test_a_neuron_table_with_a_quoted_header_is_read(tmp_path):
+    """A quoted header ("x_um","y_um", R's write.csv) is a neuron table to the napari reader too;
+    it declined one that read_table reads."""
+    import csv
+
+    worm = _small_named_worm()
+    path = tmp_path / "from_r.csv"
+    worm.to_dataframe().to_csv(path, index=False, quoting=csv.QUOTE_NONNUMERIC)
+    assert path.read_text().startswith('"x_um","y_um","z_um"')
+    assert len(read_table(path)) == len(worm)  # the core reads it
+
+    from napari_fdlc._napari._io import get_table_reader
+
+    assert get_table_reader(str(path)) is not None, "the napari reader declines a neuron table the core reads"
+
+
+def test_a_point_added_to_an_opened_table_gets_no_name_and_loses_none(make_napari_viewer, tmp_path):
+    """A point added by hand to an opened table has no name and no colour; napari gave it the last
+    row's, and saved and reopened, that name was on two rows and dropped from both."""
+    worm = _small_named_worm()
+    path = tmp_path / "worm.csv"
+    write_table(worm, path)
+    viewer = make_napari_viewer()
+    layer = viewer.open(str(path), plugin="napari-fdlc")[0]
+    layer.add(np.array([[10.0, 20.0, 30.0]]))
+    added = layer.features.iloc[-1]
+    assert added["label"] == "", f"a point added by hand shows the name {added['label']!r}"
+    assert not np.isclose(float(added["R"]), worm.colours["R"][-1]), "a point added by hand carries the last neuron's colour"
+
+    out = tmp_path / "edited.csv"
+    viewer.layers.selection = {layer}
+    viewer.layers.save(str(out), selected=True, plugin="napari-fdlc")
+    again = read_table(out)
+    assert again.labels[len(worm) - 1] == worm.labels[-1], "the last neuron's name was lost"
+
+
+def test_opening_a_lazy_stack_does_not_read_it_whole(monkeypatch):
+    """Opening a lazy stack reads a few planes for the contrast, not every plane of a stack of
+    fewer than 32 (all of it)."""
+    import dask
+    import dask.array as da
+
+    from napari_fdlc._napari._layers import stack_layers
+    from napari_fdlc.io.images import Stack
+
+    nz, shape = 24, (32, 32)
+    reads = []
+
+    def plane(c, z):
+        reads.append((c, z))
+        return np.full(shape, c * 100 + z, dtype=np.uint16)
+
+    channels = [da.stack([da.from_delayed(dask.delayed(plane)(c, z), shape=shape, dtype=np.uint16) for z in range(nz)])
+                for c in range(4)]
+    stack = Stack(da.stack(channels), (1.5, 0.3, 0.3), ["R", "G", "B", "W"], "big.ome.tif")
+    layers = stack_layers(stack)
+    assert all(not isinstance(data, np.ndarray) for data, _, _ in layers)  # the layers stay lazy
+    assert len(reads) <= 4 * nz // 2, f"opening read {len(reads)} of {4 * nz} planes"
+
+
+def test_the_sample_restores_a_renamed_neuron_id_layer_under_its_new_name(make_napari_viewer, sample_files):
+    """The sample's restored neuron-ID layer keeps the name it was saved under (gui.md §5); it was
+    always renamed 'NeuroPAL sample neuron IDs'."""
+    from napari_fdlc._napari._io import make_sample_data
+    from napari_fdlc.review import ReviewSession, session_file_for
+    from napari_fdlc.sample import load_sample
+
+    stack, truth = load_sample()
+    session = ReviewSession(truth, voxel_size_zyx=stack.voxel_size_zyx, image=stack.source)
+    session.settings["image_shape"] = list(stack.shape_zyx)
+    session.settings["layer_name"] = "worm 7 reviewed"
+    session.save(session_file_for(stack.source))
+    layers = make_sample_data()
+    assert layers[-1][1]["metadata"]["fdlc"].get("session"), "the session was not restored at all"
+    assert layers[-1][1]["name"] == "worm 7 reviewed"

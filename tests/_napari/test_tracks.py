@@ -254,3 +254,31 @@ def test_a_sequence_in_pixels_says_so_in_napari(track_widget, tmp_path):
     assert widget.run() is not None, widget.last_error
     messages = [str(r.message) for r in notification_manager.records[before:]]
     assert any("must be micrometres" in m for m in messages), messages
+
+
+def test_tracking_another_sequence_keeps_the_first_ones_layers(make_napari_viewer, identifier, tmp_path):
+    """Tracking worm B after worm A keeps A's layers (a run on the same input replaces its own);
+    A's result used to be deleted."""
+    from napari_fdlc._napari.tracks import TrackWidget
+    from napari_fdlc.track import join_by_time
+
+    viewer = make_napari_viewer()
+    widget = TrackWidget(viewer)
+    viewer.window.add_dock_widget(widget, name="Track")
+    widget.identifier = identifier
+    for name, seed in (("wormA", 1), ("wormB", 2)):
+        worm = _random_named_worm(40, seed)
+        path = tmp_path / f"{name}.csv"
+        write_table(join_by_time([worm, NeuronTable(worm.xyz + 0.2, worm.colours)]).drop(columns=["label"]), path)
+        widget.set_sequence(path)
+        assert widget.run() is not None, widget.last_error
+    names = [layer.name for layer in viewer.layers]
+    assert {"wormB tracks", "wormB neurons"} <= set(names)
+    assert {"wormA tracks", "wormA neurons"} <= set(names), f"worm A's tracking result was deleted: {names}"
+
+
+
+def _random_named_worm(n: int, seed: int) -> NeuronTable:
+    rng = np.random.default_rng(seed)
+    xyz = rng.normal(0, 1, (n, 3)) * [30, 8, 6] + [60, 30, 15]
+    return NeuronTable(xyz, {c: rng.gamma(2.0, 100.0, n) for c in "RGB"}, np.array([f"N{i}" for i in range(n)], dtype=object))

@@ -13,6 +13,7 @@ napari shows it as a notification.
 
 from __future__ import annotations
 
+import csv
 import os
 from pathlib import Path
 
@@ -101,9 +102,9 @@ def _nwb_neurons(path: str, stack):
     return table_points(table, stack.voxel_size_zyx, name=f"{_short_name(path)} neurons")
 
 
-def restored_session_layer(image_key: str, shape_zyx=None):
+def restored_session_layer(image_key: str, shape_zyx=None, default_name: str | None = None):
     """The neuron-ID layer of a saved review session of ``image_key`` (None when there is none
-    or it does not fit the image)."""
+    or it does not fit the image), under the name it was saved with (else ``default_name``)."""
     path = find_session(image_key)
     if path is None:
         return None
@@ -116,7 +117,7 @@ def restored_session_layer(image_key: str, shape_zyx=None):
     if shape_zyx is not None and saved_shape is not None and list(saved_shape) != list(shape_zyx):
         _warn_in_napari(f"{path}: saved for an image of shape {saved_shape}, not {list(shape_zyx)}; not restored")
         return None
-    name = session.settings.get("layer_name") or f"{_short_name(image_key)}{RESULT_SUFFIX}"
+    name = session.settings.get("layer_name") or default_name or f"{_short_name(image_key)}{RESULT_SUFFIX}"
     return review_points(session, name, {"session": str(path), "image": image_key})
 
 
@@ -134,19 +135,43 @@ def get_table_reader(path):
     except OSError:
         return None
     first = head.splitlines()[0] if head else ""
-    ours = all(c in [h.strip() for h in first.split(",")] for c in ("x_um", "y_um", "z_um"))
+    header = [h.strip() for h in next(csv.reader([first]), [])]  # quoted names too (R's write.csv)
+    ours = all(c in header for c in ("x_um", "y_um", "z_um"))
     neuropal = "User ID," in head and "Real X (um)" in head
     return read_table_layer if (ours or neuropal) else None
 
 
 @warnings_to(notify_warning)
 def read_table_layer(path) -> list[tuple]:
-    from ..table import read_table
+    from ..table import read_table, with_unique_names
 
     p = _one_path(path)
-    table = read_table(p)
+    table = read_table(p, unique_names=False)  # a table over time names each neuron once per time point
     voxel = _voxel_from_columns(table)
-    return [table_points(table, voxel)]
+    if "t" in table.extra.columns and table.extra["t"].nunique() > 1:
+        return [_points_over_time(table, voxel)]
+    return [table_points(with_unique_names(table), voxel)]
+
+
+def _points_over_time(table, voxel) -> tuple:
+    """A table of several time points (``fdlc segment`` of a recording, ``fdlc track``, this
+    plugin's writer) as one (t, z, y, x) Points layer: each volume at its frame, as the Track
+    widget places a sequence's volumes, its names its own."""
+    from ..table import NeuronTable
+    from ..track import split_by_time
+    from .tracks import frames_of
+
+    sequence = split_by_time(table)
+    frames = frames_of(sequence.times) or list(range(len(sequence)))
+    volumes = sequence.volumes  # each with its names made unique
+    whole = NeuronTable(np.vstack([v.xyz for v in volumes]), {c: np.concatenate([v.colours[c] for v in volumes])
+                        for c in volumes[0].colours}, np.concatenate([v.labels for v in volumes]),
+                        np.concatenate([v.label_conf for v in volumes]),
+                        pd.concat([v.extra for v in volumes], ignore_index=True), table.source)
+    data, kwargs, kind = table_points(whole, voxel)
+    t = np.repeat(np.asarray(frames, dtype=float), [len(v) for v in volumes])
+    kwargs.update(scale=(1.0, *kwargs["scale"]), axis_labels=("t", "z", "y", "x"))
+    return np.column_stack([t, data]), kwargs, kind
 
 
 def _voxel_from_columns(table) -> tuple | None:
@@ -236,9 +261,8 @@ def make_sample_data() -> list[tuple]:
     layers = stack_layers(stack, name=SAMPLE_NAME)
     truth.source = "sample neurons"
     layers.append(table_points(truth, stack.voxel_size_zyx, name="sample neurons (truth)", visible=False))
-    restored = restored_session_layer(stack.source, stack.shape_zyx)
+    restored = restored_session_layer(stack.source, stack.shape_zyx, default_name=f"{SAMPLE_NAME}{RESULT_SUFFIX}")
     if restored is not None:
-        restored[1]["name"] = f"{SAMPLE_NAME}{RESULT_SUFFIX}"
         layers.append(restored)
     return layers
 

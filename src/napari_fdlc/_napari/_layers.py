@@ -39,7 +39,11 @@ STATUS_HEX = {k: "#%02x%02x%02x" % tuple(int(255 * c) for c in v[:3]) for k, v i
 def contrast_limits(channel) -> tuple[float, float]:
     """Display range from the data: median (background) to the bright tail (99.95th
     percentile, at least mean + 4 SD), from a subsample so that big stacks stay quick."""
-    a = np.asarray(channel[:: max(1, channel.shape[0] // 16)] if channel.ndim == 3 else channel)
+    if channel.ndim == 3 and not isinstance(channel, np.ndarray):
+        # a lazy stack (over 1 GiB): a few planes, not every one of a NeuroPAL stack's ~30
+        a = np.asarray(channel[np.unique(np.linspace(0, channel.shape[0] - 1, 8).round().astype(int))])
+    else:
+        a = np.asarray(channel[:: max(1, channel.shape[0] // 16)] if channel.ndim == 3 else channel)
     flat = a.ravel()
     if flat.size > 2_000_000:
         flat = flat[:: flat.size // 2_000_000 + 1]
@@ -166,6 +170,8 @@ def table_points(
         "scale": scale,
         "size": point_size(scale),
         "features": features,
+        # A point added by hand is a new neuron: no name, no colour (napari would copy the last row's)
+        "feature_defaults": {c: _blank(features[c]) for c in features.columns},
         "face_color": "transparent",
         "border_color": "white",
         "border_width": 0.12,
@@ -219,6 +225,13 @@ def _plain_features(df: pd.DataFrame) -> pd.DataFrame:
         else:
             out[str(c)] = np.asarray(["" if _missing(v) else str(v) for v in col], dtype=object)
     return out
+
+
+def _blank(column: pd.Series):
+    """What a point added by hand holds in a feature column: nothing read (NaN, '', False)."""
+    if pd.api.types.is_bool_dtype(column):
+        return False
+    return np.nan if pd.api.types.is_numeric_dtype(column) else ""
 
 
 def _missing(v) -> bool:

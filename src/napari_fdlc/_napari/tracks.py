@@ -381,11 +381,13 @@ class TrackWidget(QWidget):
     # ------------------------------------------------------------------------------------------
     def _show(self, sequence, result, frames, name: str) -> None:
         self.sequence, self.result = sequence, result
+        made = track_layers(result, sequence, name, frames)
+        # A run on the same input replaces its layers; another input's result stays beside it.
         for layer in self.layers:
-            if layer in self.viewer.layers:
+            if layer in self.viewer.layers and layer.name in {kwargs["name"] for _, kwargs, _ in made}:
                 self.viewer.layers.remove(layer)
         self.layers = []
-        for data, kwargs, kind in track_layers(result, sequence, name, frames):
+        for data, kwargs, kind in made:
             self.layers.append(getattr(self.viewer, f"add_{kind}")(data, **kwargs))
         # Neurons are spread in z: show the whole volume at the current time point (in a 2D slice
         # only the neurons of one z plane would show), starting at the first time point.
