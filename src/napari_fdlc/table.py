@@ -323,7 +323,7 @@ def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line:
         labels = np.array([p[0] for p in parsed], dtype=object)
         conf = np.array([p[1] for p in parsed])
         if unique_names:
-            labels, conf, _ = _drop_duplicate_names(labels, conf, source)
+            labels, conf = _drop_duplicate_names(labels, conf, source)
     kept = [c for c in df.columns if c not in COORDS + COLOUR_CHANNELS + ("label",)]
     return NeuronTable(xyz, colours, labels, conf, df[kept].reset_index(drop=True), source, text=df.reset_index(drop=True))
 
@@ -332,7 +332,7 @@ def with_unique_names(table: NeuronTable, say: bool = True) -> NeuronTable:
     """``table`` with a name that occurs more than once left on none of its rows, as
     :func:`read_table` reads one volume; ``say``: with one warning line (a caller splitting
     many volumes says it once for all, :func:`repeated_names`)."""
-    table.labels, table.label_conf, _ = _drop_duplicate_names(table.labels, table.label_conf, table.source, say)
+    table.labels, table.label_conf = _drop_duplicate_names(table.labels, table.label_conf, table.source, say)
     return table
 
 
@@ -351,12 +351,9 @@ def _drop_duplicate_names(labels: np.ndarray, conf: np.ndarray, source: str, say
         labels[mask] = ""
         conf[mask] = 0.0
         if say:
-            warn(f"{source}: name(s) {_few(duplicated)} occur more than once; those rows are read as unnamed")
-    return labels, conf, duplicated
-
-
-def _few(names) -> str:
-    return ", ".join(sorted(names)[:8]) + (" ..." if len(names) > 8 else "")
+            shown = ", ".join(sorted(duplicated)[:8]) + (" ..." if len(duplicated) > 8 else "")
+            warn(f"{source}: name(s) {shown} occur more than once; those rows are read as unnamed")
+    return labels, conf
 
 
 def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int, names: bool = True, unique_names: bool = True) -> NeuronTable:
