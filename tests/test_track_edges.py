@@ -159,15 +159,6 @@ def test_a_sequence_labelled_at_every_time_point_keeps_its_names(tmp_path, gentl
 
 # ----- session 30's review of fdlc track's inputs and output ---------------------------------------
 
-GENTLE_MOTION = SequenceParams(frames=3, bend_curvature=0.002, roll=0.05, xy_rotation=0.3, drift_um=4.0,
-                        drop_fraction=(0.0, 0.05), max_spurious=3, jitter_um=0.2)
-
-
-@pytest.fixture(scope="module")
-def gentle_sequence(worm):
-    return simulate_sequence(worm, 3, GENTLE_MOTION)
-
-
 def _write_exact(volumes, times, path):
     """A sequence CSV whose t cells are exactly the text given (pandas, not write_table: the
     input must hold the times as the user's own tool wrote them)."""
@@ -175,11 +166,11 @@ def _write_exact(volumes, times, path):
     return path
 
 
-def test_fractional_time_stamps_are_written_back_as_given(tmp_path, gentle_sequence):
+def test_fractional_time_stamps_are_written_back_as_given(tmp_path, gentle):
     """Time stamps in seconds come back as given (tracking.md: the input's t); written with 6
     significant digits, 1700000000.0, .2 and .4 all came out as 1.7e+09, one time point."""
-    volumes, _ = gentle_sequence
-    times = ["1700000000.0", "1700000000.2", "1700000000.4"]
+    volumes, _ = gentle
+    times = ["1700000000.0", "1700000000.2", "1700000000.4", "1700000000.6"]
     src = _write_exact(volumes, times, tmp_path / "seq.csv")
     out = tmp_path / "tracks.csv"
     assert main(["track", str(src), "--method", "geometry", "--quiet", "--out", str(out)]) == 0
@@ -213,10 +204,10 @@ def test_bad_weights_are_refused_before_a_recording_is_segmented(tmp_path, recor
     assert "segmented" not in err, err
 
 
-def test_a_repeated_name_in_a_long_labelled_sequence_is_one_warning(tmp_path, gentle_sequence, worm, capsys):
+def test_a_repeated_name_in_a_long_labelled_sequence_is_one_warning(tmp_path, worm, capsys):
     """A name repeated within the time points of a labelled sequence is one warning line (cli.md),
     not one per time point."""
-    volumes, origins = simulate_sequence(worm, 3, SequenceParams(**{**GENTLE_MOTION.__dict__, "frames": 6}))
+    volumes, origins = simulate_sequence(worm, 3, SequenceParams(**{**GENTLE.__dict__, "frames": 6}))
     labelled = []
     for v, origin in zip(volumes, origins):
         names = np.array([worm.labels[o] if o >= 0 else "X" for o in origin], dtype=object)
