@@ -135,3 +135,16 @@ def test_two_columns_named_alike_are_refused_and_nothing_is_written(tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "note" in err[0], err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_cpd_refuses_a_flat_test_as_the_model_does(tmp_path, capsys):
+    """docs/cli.md: a test of 10 neurons or more in one plane is refused (left cannot be told
+    from right); --method cpd named it."""
+    sample = _sample_frame()
+    flat = sample.iloc[:20][["x_um", "y_um", "z_um"]].copy()
+    flat["z_um"] = 5.0
+    test, template = tmp_path / "flat.csv", tmp_path / "template.csv"
+    flat.to_csv(test, index=False)
+    sample.iloc[:60][["x_um", "y_um", "z_um", "label"]].to_csv(template, index=False)
+    assert run("label", test, "--template", template, "--method", "cpd", "--out", tmp_path / "out.csv") == 2
+    assert "plane" in capsys.readouterr().err

@@ -601,3 +601,76 @@ def test_resume_from_a_checkpoints_configuration_is_not_held_to_that_runs_stop(s
                "--out", stopped_run, "--steps", "6", "--resume") == 0
     steps = [h["step"] for h in json.loads(stopped_run.with_suffix(".json").read_text())["history"]]
     assert steps == [3, 6], steps
+
+
+# --------------------------------------------------------------------------------------------
+# fdlc atlas and fdlc handedness (session 30's review)
+
+
+def test_atlas_refuses_an_out_that_would_replace_the_corpus_index(tmp_path, write_corpus, capsys):
+    """An atlas written into the corpus folder is refused (the corpus is read, never written);
+    --out CORPUS/worms.csv used to replace the corpus's index with the atlas."""
+    worms = [generate_worm(seed=s) for s in range(1, 5)]
+    corpus = write_corpus(tmp_path / "corpus", {"A": worms[:2], "B": worms[2:]})
+    index = corpus / "worms.csv"
+    before = index.read_text()
+    code = run("atlas", "--corpus", corpus, "--out", index)
+    assert index.read_text() == before, "the corpus index was overwritten by the atlas"
+    assert code != 0
+    assert "inside the corpus folder" in _one_line_error(capsys)
+
+
+def test_atlas_refuses_an_out_that_would_replace_a_worm_of_the_corpus(tmp_path, write_corpus, capsys):
+    """The same for a worm's table inside the corpus, which was replaced by the atlas."""
+    worms = [generate_worm(seed=s) for s in range(1, 5)]
+    corpus = write_corpus(tmp_path / "corpus", {"A": worms[:2], "B": worms[2:]})
+    target = corpus / "A" / "w0.csv"
+    before = target.read_text()
+    code = run("atlas", "--corpus", corpus, "--out", target)
+    assert target.read_text() == before, "a worm of the corpus was overwritten by the atlas"
+    assert code != 0
+    assert "inside the corpus folder" in _one_line_error(capsys)
+
+
+def test_atlas_labs_are_matched_as_the_corpus_is_read(tmp_path, write_corpus, capsys):
+    """A lab written 'B ' in worms.csv is lab B for --labs too; it was refused with 'no worms of
+    lab(s) B (labs: A, B )'."""
+    worms = [generate_worm(seed=s) for s in range(1, 7)]
+    corpus = write_corpus(tmp_path / "corpus", {"A": worms[:3], "B": worms[3:]})
+    index = corpus / "worms.csv"
+    index.write_text(index.read_text().replace("\nB,", "\nB ,"))
+    out = tmp_path / "atlas.csv"
+    code = run("atlas", "--corpus", corpus, "--labs", "B", "--out", out)
+    assert code == 0, capsys.readouterr().err
+    assert "of B ->" in capsys.readouterr().out
+
+
+def test_handedness_refuses_a_flat_template(tmp_path, capsys):
+    """A flat template (z all equal) has no handedness to compare with: refused in one line; a
+    worm and its mirror image were both answered "same"."""
+    worm = generate_worm(seed=1)
+    mirrored = NeuronTable(worm.xyz * [1, 1, -1], worm.colours, worm.labels)
+    template = generate_worm(seed=2)
+    flat = template.xyz.copy()
+    flat[:, 2] = 5.0
+    paths = {"worm": tmp_path / "worm.csv", "mirrored": tmp_path / "mirrored.csv", "flat": tmp_path / "flat.csv"}
+    write_table(worm, paths["worm"])
+    write_table(mirrored, paths["mirrored"])
+    write_table(NeuronTable(flat, template.colours, template.labels), paths["flat"])
+    code = run("handedness", paths["worm"], paths["mirrored"], "--template", paths["flat"])
+    out = capsys.readouterr()
+    assert code != 0, f"answered against a flat template: {out.out!r}"
+    err = out.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("fdlc: error:") and "plane" in err[0], err
+
+
+def test_handedness_of_three_named_neurons_says_too_few_names(tmp_path, capsys):
+    """Three named neurons always lie in a plane: the message is that 6 names are needed, not to
+    check the z positions."""
+    worm = generate_worm(seed=1)
+    three = NeuronTable(worm.xyz[:3], {k: v[:3] for k, v in worm.colours.items()}, worm.labels[:3])
+    path = tmp_path / "three.csv"
+    write_table(three, path)
+    assert run("handedness", path) != 0
+    line = _one_line_error(capsys)
+    assert "fewer than 6 named neurons in common" in line, line

@@ -197,6 +197,7 @@ def _plot_reliability(calib, path: Path, reliability) -> bool:
     ax.set_title("Reliability (pairs within each lab)")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_write(path, "wb") as handle:
+        fig.savefig(handle, dpi=110, format="png")
     plt.close(fig)
     return True

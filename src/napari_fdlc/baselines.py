@@ -1,6 +1,6 @@
 """Non-learned matchers, to show every figure side by side with classical methods.
 
-* :func:`floor_match` — the no-learning floor of ``docs/fdlc.md``: canonical frame, test scaled
+* :func:`floor_match` — the no-learning floor of ``../shared/docs/fdlc.md``: canonical frame, test scaled
   to the template's RMS radius, four proper 180° flips, Hungarian on squared distance (plus
   colour), the flip of lowest cost wins.
 * :func:`cpd_match` — Coherent Point Drift (pycpd): the template is deformed onto the test

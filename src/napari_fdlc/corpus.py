@@ -64,10 +64,11 @@ def load_corpus(path: str | os.PathLike | None = None, labs: tuple[str, ...] | l
         raise FdlcError(f"{index_path}: no column {' or '.join(repr(c) for c in missing)} (it lists the worms: dataset, worm)")
     if index.empty:
         raise FdlcError(f"{index_path}: lists no worm")
+    index["dataset"], index["worm"] = index["dataset"].str.strip(), index["worm"].str.strip()
+    labs = None if labs is None else [lab.strip() for lab in labs]  # as the corpus's own are read
     unknown = sorted(set(labs or ()) - set(index["dataset"]))
     if unknown:
         raise FdlcError(f"no worms of lab(s) {', '.join(unknown)} in the corpus (labs: {', '.join(sorted(set(index['dataset'])))})")
-    index["dataset"], index["worm"] = index["dataset"].str.strip(), index["worm"].str.strip()
     blank = (index["dataset"] == "") | (index["worm"] == "")
     if blank.any():
         raise FdlcError(f"{index_path}, line {int(blank.to_numpy().argmax()) + 2}: a row without its dataset or worm; "

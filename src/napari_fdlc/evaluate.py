@@ -123,11 +123,12 @@ def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
         names, xyz = atlas.names, atlas.mean
     else:
         names, xyz = reference.labels, canonical_frame(reference.xyz)[0]
-    named = worm.xyz[worm.named]
-    if len(named) >= 3:
-        depth = thickness_um(named)
-        if depth < FLAT_UM:  # a mirror image of a flat worm is the worm itself turned over
-            raise FdlcError(f"{worm.source}: the named neurons lie in a plane ({depth:.2f} µm thick), so their "
+    # A mirror image of a flat worm is the worm itself turned over: its handedness cannot be
+    # told, nor a worm's relative to a flat reference. (Under 6 names: too few names, said below.)
+    for table, what in ((worm, "the named neurons"), (reference, "the reference's named neurons")):
+        named = table.xyz[table.named] if table is not None else np.zeros((0, 3))
+        if len(named) >= 6 and thickness_um(named) < FLAT_UM:
+            raise FdlcError(f"{table.source}: {what} lie in a plane ({thickness_um(named):.2f} µm thick), so the "
                             "handedness cannot be told; check the z positions (voxel size in z)")
     mirrored = mirrored_by_names(names, xyz, worm, min_names=6)
     if mirrored is None:

@@ -32,7 +32,7 @@ ORIENTATIONS = np.array(_PROPER + [o @ _MIRROR for o in _PROPER])
 N_PROPER = len(_PROPER)
 # How a test's handedness relates to its template's (or the atlas's): search both, or known.
 CHIRALITIES = ("auto", "same", "mirrored")
-# The non-learned floor of docs/fdlc.md tries the four proper 180° flips only.
+# The non-learned floor of ../shared/docs/fdlc.md tries the four proper 180° flips only.
 FLOOR_FLIPS = np.array([np.eye(3), _HEAD_TAIL, _roll(2), _HEAD_TAIL @ _roll(2)])
 
 
@@ -105,6 +105,16 @@ def thickness_um(xyz: np.ndarray) -> float:
     if len(xyz) < 3:
         return 0.0
     return float(np.linalg.svd(xyz - xyz.mean(axis=0), compute_uv=False)[-1] / np.sqrt(len(xyz)))
+
+
+def refuse_flat(xyz: np.ndarray, source: str, min_neurons: int) -> None:
+    """Refuse (FdlcError) a table of ``min_neurons`` or more that lies in one plane: a worm and
+    its mirror image are then the same points, and every left/right name a guess."""
+    from .errors import FdlcError
+
+    if len(xyz) >= min_neurons and (depth := thickness_um(xyz)) < FLAT_UM:
+        raise FdlcError(f"{source or 'the test'}: the neurons lie in a plane ({depth:.2f} µm thick), so left "
+                        "cannot be told from right; a 3D table is needed (check the z positions and the voxel size in z)")
 
 
 def fit_affine(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None, ridge: float = 1e-3) -> np.ndarray:

@@ -32,8 +32,8 @@ import numpy as np
 from . import colour as colour_model
 from ._blas import one_blas_thread
 from .errors import FdlcError, ModelError, warn
-from .geometry import (CHIRALITIES, FLAT_UM, apply_affine, canonical_frame, compose_affine, fit_affine, fit_warp,
-                       mirrored_by_names, position_evidence, thickness_um)
+from .geometry import (CHIRALITIES, apply_affine, canonical_frame, compose_affine, fit_affine, fit_warp,
+                       mirrored_by_names, position_evidence, refuse_flat)
 from .match import Labelling, assign_log, check_fixed, make_labelling, name_probabilities
 from .register import (HEAD_WINDOW, Placement, body_reach, head_window, posterior, register, smaller_worm_factor,
                        template_mixture)
@@ -902,10 +902,7 @@ class Identifier:
             raise FdlcError(f"{test.source or 'the test'}: no neurons to name")
         if not all(np.isfinite(t.xyz).all() for t in (test, *templates)):
             raise FdlcError("a neuron position is not a finite number")
-        if len(test) >= FEW_NEURONS and (depth := thickness_um(test.xyz)) < FLAT_UM:
-            # A worm and its mirror image are then the same points: every left/right name a guess.
-            raise FdlcError(f"{test.source or 'the test'}: the neurons lie in a plane ({depth:.2f} µm thick), so left "
-                            "cannot be told from right; a 3D table is needed (check the z positions and the voxel size in z)")
+        refuse_flat(test.xyz, test.source, FEW_NEURONS)
         return use_colour and any(colour_model.shared_channels(t, test) for t in templates)
 
 
@@ -957,9 +954,9 @@ def decide_handedness(willingness, registration=None) -> tuple[str | None, int, 
 
     Per worm either piece is weak (right for 22-89 % of the worms of a lab the model never
     saw), and a lab can lean the wrong way on one: with an atlas built without KK, the shipped
-    model's willingness leans mirrored on 7 of KK's 9 worms (2 are), its registration on 1.
+    model's willingness leans mirrored on 6 of KK's 9 worms (2 are), its registration on 1.
     On batches of 30 recordings resampled from each corpus lab, the willingness alone decided
-    165 of 2000 wrongly, the two together 1 (benchmarks/handedness.py)."""
+    50 of 2000 wrongly (KK's), the two together 1 (benchmarks/handedness.py, handedness.md)."""
     from scipy.stats import binomtest
 
     willingness = np.asarray(willingness, dtype=float)

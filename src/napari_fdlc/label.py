@@ -1,6 +1,6 @@
 """``fdlc label`` as a function: validate every input, load the model once, write atomically.
 
-The output layout is the public contract of ``docs/neuron_table.md``: one row per test neuron in
+The output layout is the public contract of ``../shared/docs/neuron_table.md``: one row per test neuron in
 input order, ``neuron_index, x_um, y_um, z_um, auto_id, auto_conf, cand_1, prob_1, … cand_K,
 prob_K`` (K = max(top_k, 3)), then the test's other columns (its ``label`` is not copied).
 """
@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import FdlcError, check_output, warn
+from .geometry import refuse_flat
 from .identify import (ADAPT_MIN_TESTS, FEW_NEURONS, Identifier, can_adapt_colours, colour_note, default_identifier,
                        harmonise, label_neurons, smaller_worm_note)
 from .match import Labelling, make_labelling, name_probabilities
@@ -145,7 +146,11 @@ def label_files(
                      f"registration agree lean mirrored relative to the atlas: all are named as '{batch['decided']}' "
                      "(--chirality decides yourself; --no-shared-handedness lets each recording decide alone)")
     else:
+        for t in test_tables:  # as the model's path refuses them: left cannot be told from right
+            refuse_flat(t.xyz, t.source, FEW_NEURONS)
         results = [cpd_labelling(t, template_tables, use_colour) for t in test_tables]
+        if use_colour and any(t.colours for t in test_tables):
+            warn("--method cpd names by position only: the colour columns are not used")
     frames = []  # every answer made before any is written: a failure leaves no output behind
     for test, result in zip(test_tables, results):
         note = smaller_worm_note(test, result)

@@ -1,6 +1,6 @@
 """Neuron tables: one row per neuron, positions in µm, optional NeuroPAL colours and names.
 
-The format is the public contract of ``docs/neuron_table.md`` (columns ``x_um, y_um, z_um``,
+The format is the public contract of ``../shared/docs/neuron_table.md`` (columns ``x_um, y_um, z_um``,
 optional ``R, G, B, W``, optional ``label``; other columns kept). NeuroPAL_ID's "Save ID Info"
 CSV is read and written too. Every problem is refused with one line naming the file, the line
 and the column.

@@ -1,6 +1,6 @@
 """Layer data for napari: stacks as R/G/B/W additive channels, neuron tables as Points.
 
-Conventions (``docs/neuropal_formats_and_tools.md``): one image layer per channel with a
+Conventions (``../shared/docs/neuropal_formats_and_tools.md``): one image layer per channel with a
 red/green/blue/gray colormap, additive blending, gamma 0.7 and contrast from the data; the voxel
 size is the layers' ``scale``, so the world is in µm. Neurons are Points in *voxel* coordinates
 with the image's scale (each neuron then sits on exactly one z plane, the one through its

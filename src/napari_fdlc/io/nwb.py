@@ -1,6 +1,6 @@
 """NWB files in the NeuroPAL layout (ndx-multichannel-volume, as on DANDI), read with pynwb.
 
-Where things are (``docs/neuropal_formats_and_tools.md``):
+Where things are (``../shared/docs/neuropal_formats_and_tools.md``):
 
 - image: ``acquisition['NeuroPALImageRaw'].data``, axes x, y, z, c; ``RGBW_channels`` holds the
   0-based channel indices of mNeptune2.5, CyOFP1.5, mTagBFP2, TagRFP-T;
