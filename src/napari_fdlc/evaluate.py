@@ -113,7 +113,7 @@ def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
     """"same" or "mirrored": a labelled worm's handedness relative to a labelled ``reference``
     or, without one, to the built-in atlas — the value of ``--chirality`` for recordings made
     like it. Refuses a worm with fewer than 6 names in common (one line that says so)."""
-    from .geometry import FLAT_UM, canonical_frame, mirrored_by_names, thickness_um
+    from .geometry import canonical_frame, mirrored_by_names, refuse_flat
     from .reference import load_atlas
 
     if reference is not None and not reference.named.any():
@@ -125,11 +125,8 @@ def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
         names, xyz = reference.labels, canonical_frame(reference.xyz)[0]
     # A mirror image of a flat worm is the worm itself turned over: its handedness cannot be
     # told, nor a worm's relative to a flat reference. (Under 6 names: too few names, said below.)
-    for table, what in ((worm, "the named neurons"), (reference, "the reference's named neurons")):
-        named = table.xyz[table.named] if table is not None else np.zeros((0, 3))
-        if len(named) >= 6 and thickness_um(named) < FLAT_UM:
-            raise FdlcError(f"{table.source}: {what} lie in a plane ({thickness_um(named):.2f} µm thick), so the "
-                            "handedness cannot be told; check the z positions (voxel size in z)")
+    for table in (worm, reference) if reference is not None else (worm,):
+        refuse_flat(table.xyz[table.named], table.source, min_neurons=6)
     mirrored = mirrored_by_names(names, xyz, worm, min_names=6)
     if mirrored is None:
         raise FdlcError(f"{worm.source}: fewer than 6 named neurons in common with the reference; "

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import FdlcError
+
 def _roll(quarter_turns: int) -> np.ndarray:
     """Rotation about the body axis (x) by a multiple of 90°."""
     c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][quarter_turns % 4]
@@ -110,8 +112,6 @@ def thickness_um(xyz: np.ndarray) -> float:
 def refuse_flat(xyz: np.ndarray, source: str, min_neurons: int) -> None:
     """Refuse (FdlcError) a table of ``min_neurons`` or more that lies in one plane: a worm and
     its mirror image are then the same points, and every left/right name a guess."""
-    from .errors import FdlcError
-
     if len(xyz) >= min_neurons and (depth := thickness_um(xyz)) < FLAT_UM:
         raise FdlcError(f"{source or 'the test'}: the neurons lie in a plane ({depth:.2f} µm thick), so left "
                         "cannot be told from right; a 3D table is needed (check the z positions and the voxel size in z)")

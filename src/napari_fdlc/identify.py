@@ -303,11 +303,11 @@ class Identifier:
         first use in ~0.1 s): the same numbers, 10-20 % less time."""
         if self.device != "cpu" or (tmpl_c is None) != (test_c is None):
             return self.model(tmpl, test, tmpl_mask, test_mask, tmpl_c, test_c)
-        from .model import _real_mask, trace_model
+        from .model import real_mask, trace_model
 
         # A mask without padding (a chunk of tests of one size) is no mask: the model drops it,
         # so a trace made on it follows the unmasked path, and must not serve padded batches.
-        tmpl_mask, test_mask = _real_mask(tmpl_mask), _real_mask(test_mask)
+        tmpl_mask, test_mask = real_mask(tmpl_mask), real_mask(test_mask)
         inputs = (tmpl, test, tmpl_mask, test_mask, tmpl_c, test_c)
         key = (tmpl.shape[0], test.shape[0], *(x is not None for x in inputs[2:]))
         traced = self._traced.get(key)

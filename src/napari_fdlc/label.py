@@ -146,8 +146,6 @@ def label_files(
                      f"registration agree lean mirrored relative to the atlas: all are named as '{batch['decided']}' "
                      "(--chirality decides yourself; --no-shared-handedness lets each recording decide alone)")
     else:
-        for t in test_tables:  # as the model's path refuses them: left cannot be told from right
-            refuse_flat(t.xyz, t.source, FEW_NEURONS)
         results = [cpd_labelling(t, template_tables, use_colour) for t in test_tables]
         if use_colour and any(t.colours for t in test_tables):
             warn("--method cpd names by position only: the colour columns are not used")
@@ -169,6 +167,7 @@ def label_files(
 def cpd_labelling(test: NeuronTable, templates: list[NeuronTable], use_colour: bool = False) -> Labelling:
     from .baselines import cpd_match
 
+    refuse_flat(test.xyz, test.source, FEW_NEURONS)  # as the model's path: left cannot be told from right
     per_template = [(cpd_match(t, test, use_colour)[:, :-1], t.labels) for t in templates]
     names, probs = name_probabilities(per_template)
     return make_labelling(names, probs, info={"method": "cpd"})

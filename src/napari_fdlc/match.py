@@ -15,6 +15,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from .errors import FdlcError
+from .table import parse_name
 
 _TINY = 1e-12
 
@@ -156,8 +157,6 @@ def one_to_one(probs: np.ndarray, fixed: dict[int, int] | None = None, iteration
 def check_fixed(fixed: dict | None, n: int) -> dict[int, str]:
     """The user's decided names by row (``fixed``), checked against a test of ``n`` neurons:
     rows are whole numbers 0..n-1, and a name belongs to one neuron."""
-    from .table import parse_name
-
     rows_of = {}
     for row, given in (fixed or {}).items():
         if isinstance(row, (bool, np.bool_)) or not isinstance(row, (int, np.integer)) or not 0 <= row < n:

@@ -194,8 +194,8 @@ class CorrespondenceModel(nn.Module):
         attention mask.
         """
         b = test_xyz.shape[0]
-        template_mask = _real_mask(template_mask)
-        test_mask = _real_mask(test_mask)
+        template_mask = real_mask(template_mask)
+        test_mask = real_mask(test_mask)
         scale = self.config["scale_um"]
         p0, q0 = template_xyz / scale, test_xyz / scale
         tmpl = self.embed(p0) + self.role[0] + self._colour(template_colour, p0)
@@ -244,7 +244,7 @@ def trace_model(model: CorrespondenceModel, template_xyz, test_xyz, template_mas
         return torch.jit.trace(Traced().eval(), example, check_trace=False)
 
 
-def _real_mask(mask):
+def real_mask(mask):
     """None when every entry is real (no padding): attention then needs no mask."""
     return None if mask is None or bool(mask.all()) else mask
 

@@ -157,19 +157,15 @@ def _points_over_time(table, voxel) -> tuple:
     """A table of several time points (``fdlc segment`` of a recording, ``fdlc track``, this
     plugin's writer) as one (t, z, y, x) Points layer: each volume at its frame, as the Track
     widget places a sequence's volumes, its names its own."""
-    from ..table import NeuronTable
-    from ..track import split_by_time
+    from ..table import table_from_dataframe
+    from ..track import join_by_time, split_by_time
     from .tracks import frames_of
 
-    sequence = split_by_time(table)
+    sequence = split_by_time(table)  # each volume's names made unique on their own
     frames = frames_of(sequence.times) or list(range(len(sequence)))
-    volumes = sequence.volumes  # each with its names made unique
-    whole = NeuronTable(np.vstack([v.xyz for v in volumes]), {c: np.concatenate([v.colours[c] for v in volumes])
-                        for c in volumes[0].colours}, np.concatenate([v.labels for v in volumes]),
-                        np.concatenate([v.label_conf for v in volumes]),
-                        pd.concat([v.extra for v in volumes], ignore_index=True), table.source)
+    whole = table_from_dataframe(join_by_time(sequence.volumes, sequence.times), table.source, unique_names=False)
     data, kwargs, kind = table_points(whole, voxel)
-    t = np.repeat(np.asarray(frames, dtype=float), [len(v) for v in volumes])
+    t = np.repeat(np.asarray(frames, dtype=float), [len(v) for v in sequence.volumes])
     kwargs.update(scale=(1.0, *kwargs["scale"]), axis_labels=("t", "z", "y", "x"))
     return np.column_stack([t, data]), kwargs, kind
 
