@@ -98,14 +98,14 @@ def main(argv=None) -> int:
                   "--panel-worms-per-lab", str(PANEL_WORMS), "--synthetic-pairs", "0", "--out", str(runs / f"{prefix}_{lab}_accuracy.md")])
     head = "| held-out lab | " + " | ".join(name for _, name in COLUMNS) + " | published LOLO fDLC | best published |"
     lines = [head, "|" + "---|" * (len(COLUMNS) + 3)]
-    ece = ["| held-out lab | pairs: fdlc position | pairs: fdlc + colour | panel: position | panel: colour | panel: colour, handedness given |",
-           "|---|---|---|---|---|---|"]
+    ece = ["| held-out lab | pairs: fdlc position | pairs: fdlc + colour | panel: position | panel: colour | panel: colour, the lab's handedness | panel: colour, handedness given |",
+           "|---|---|---|---|---|---|---|"]
     for lab in args.labs:
         report = read_report(runs / f"{prefix}_{lab}_accuracy.md", lab)
         cells = [f"{report[key][0]:.1f} / {report[key][1]:.1f}" if key in report else "–" for key, _ in COLUMNS]
         lines.append(f"| {lab} | " + " | ".join(cells) + f" | {PUBLISHED_LOLO_FDLC.get(lab, '–')} | {PUBLISHED_BEST.get(lab, '–')} |")
         keys = [("pairs", "fdlc", "position"), ("pairs", "fdlc", "colour"), ("panel", "fdlc", "position"),
-                ("panel", "fdlc", "colour"), ("panel", "fdlc", "colour, chirality given")]
+                ("panel", "fdlc", "colour"), ("panel", "fdlc", "colour, lab handedness"), ("panel", "fdlc", "colour, chirality given")]
         ece.append(f"| {lab} | " + " | ".join(f"{report[k][2]:.3f}" if k in report else "–" for k in keys) + " |")
     text = "\n".join(lines) + "\n\nExpected calibration error of `auto_conf` (calibration fitted on the four training labs only):\n\n" + "\n".join(ece) + "\n"
     with atomic_write(args.out, "w", encoding="utf-8") as handle:

@@ -5,6 +5,7 @@ import torch
 from napari_fdlc.model import CorrespondenceModel, matching_loss
 from napari_fdlc.reference import generate_worm
 from napari_fdlc.simulate import simulate_worm
+from napari_fdlc.table import NeuronTable
 from napari_fdlc.corpus import Worm
 from napari_fdlc.train import TRAIN_SIM, TrainConfig, _crop, collate, held_out, make_example, split_worms
 
@@ -118,6 +119,31 @@ def test_calibration_does_not_depend_on_the_settings_it_starts_from():
                      pairs, log=lambda *_: None) == first
 
 
+def test_the_panel_temperature_does_not_depend_on_the_tests_handedness():
+    """The panel's temperature is fitted on answers in each test's own handedness, and the doubt
+    about the handedness on `auto` (the mirrored tests, whose handedness the prior gets wrong,
+    get the most doubt). Both used to be fitted jointly on `auto`, where the wrongly named
+    mirrored tests raised the temperature (1.0 -> 1.4): every answer flattened."""
+    from napari_fdlc.identify import Identifier
+    from napari_fdlc.reference import load_atlas, make_panel
+    from napari_fdlc.train import calibrate
+
+    rng = np.random.default_rng(0)
+    worms = [generate_worm(seed=s) for s in (1, 2)]
+    pairs = {"A": [(worms[0], simulate_worm(worms[1], rng).table)]}
+    panel = make_panel(load_atlas())
+    fitted = {}
+    for name, tests in (("as generated", worms), ("mirrored", [_z_flipped(w) for w in worms])):
+        settings = calibrate(Identifier.load(), pairs, log=lambda *_: None, panel_tests={"A": (panel, tests)})
+        fitted[name] = settings["panel_temperature"], settings["chirality_doubt"]
+    assert fitted["as generated"][0] == fitted["mirrored"][0]
+    assert fitted["as generated"][1] < fitted["mirrored"][1]
+
+
+def _z_flipped(table):
+    return NeuronTable(table.xyz * np.array([1.0, 1.0, -1.0]), table.colours, table.labels)
+
+
 def test_tracking_examples_are_placed_as_the_tracker_places_them():
     """A tracking example is a recording's first volume (the reference, its canonical frame) and
     a later volume placed by the geometric chain: partners land within a few µm, and spurious
@@ -167,14 +193,10 @@ def test_train_cli_refuses_what_cannot_be_done(tmp_path, capsys, config, flags, 
 def test_mixed_handedness_rate_counts_pairs_of_a_lab_that_differ():
     """1 of lab A's 4 worms is mirrored (z flipped): 6 of its 12 ordered pairs differ; lab B's
     2 worms agree (0 of 2): 6 of 14."""
-    from napari_fdlc.table import NeuronTable
     from napari_fdlc.train import mixed_handedness_rate
 
-    def mirrored(table):
-        return NeuronTable(table.xyz * np.array([1.0, 1.0, -1.0]), labels=table.labels)
-
     worms = [Worm("A", str(s), generate_worm(seed=s)) for s in range(3)]
-    worms += [Worm("A", "m", mirrored(generate_worm(seed=3))), Worm("B", "4", generate_worm(seed=4)),
+    worms += [Worm("A", "m", _z_flipped(generate_worm(seed=3))), Worm("B", "4", generate_worm(seed=4)),
               Worm("B", "5", generate_worm(seed=5))]
     assert mixed_handedness_rate(worms) == pytest.approx(6 / 14)
     assert mixed_handedness_rate(worms[:3]) == 0.0
