@@ -204,6 +204,23 @@ def test_simulate_writes_known_correspondence(tmp_path, table_files):
     assert (df.loc[real, "label"].to_numpy() == source["label"].to_numpy()[df.loc[real, "origin"]]).all()
 
 
+def test_simulate_carries_the_source_colours_exactly(tmp_path):
+    """A synthetic neuron keeps its source neuron's colours to the last digit. Colours were
+    written with 6 significant digits: a raw intensity of 1 234 567.25 came back 1.23457e+06."""
+    rng = np.random.default_rng(0)
+    n = 30
+    source = pd.DataFrame({"x_um": rng.uniform(0, 100, n), "y_um": rng.uniform(0, 20, n), "z_um": rng.uniform(0, 10, n),
+                           "R": rng.uniform(1e6, 2e6, n).round(2), "G": rng.uniform(0, 1, n)})
+    table = tmp_path / "worm.csv"
+    source.to_csv(table, index=False)
+    assert run("simulate", table, "--out", tmp_path / "syn") == 0
+    synth = pd.read_csv(tmp_path / "syn" / "worm_syn0.csv")
+    real = synth[synth["origin"] >= 0]
+    assert len(real)
+    for channel in ("R", "G"):
+        np.testing.assert_array_equal(real[channel].to_numpy(), source[channel].to_numpy()[real["origin"]])
+
+
 def test_atlas_command_reproduces_the_shipped_atlas(tmp_path, corpus_path):
     from napari_fdlc.reference import shipped_atlas_path
 

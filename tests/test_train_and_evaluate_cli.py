@@ -404,6 +404,62 @@ def test_evaluate_scores_a_lab_named_twice_once(fake_corpus, untrained_weights, 
     assert len(rows) == 1, rows
 
 
+FAST_EVALUATION = ("--pairs-per-lab", "1", "--panel-worms-per-lab", "0", "--synthetic-pairs", "0", "--no-cpd")
+
+
+def test_evaluate_refuses_an_out_inside_the_corpus(tmp_path, write_corpus, untrained_weights, capsys):
+    """The corpus is read, never written: `--out CORPUS/NP/w0.csv` is refused before any work.
+    The report used to replace the worm's table (the corpus no longer loaded)."""
+    corpus = write_corpus(tmp_path / "corpus", {lab: [generate_worm(seed=300 + 3 * k + i) for i in range(3)]
+                                                for k, lab in enumerate(("NP", "EY"))})
+    victim = corpus / "NP" / "w0.csv"
+    before = victim.read_bytes()
+    assert run("evaluate", "--corpus", corpus, "--labs", "NP", *FAST_EVALUATION, "--weights", untrained_weights,
+               "--out", victim) == 2
+    assert "inside the corpus" in _one_line_error(capsys)
+    assert victim.read_bytes() == before
+
+
+def test_evaluate_refuses_an_out_onto_its_own_weights(tmp_path, fake_corpus, untrained_weights, capsys):
+    """`--weights runs/model --out runs/model.json` is refused (an output that replaces an
+    input); the report used to be written over the model's configuration."""
+    weights = tmp_path / "model"
+    for suffix in (".safetensors", ".json"):
+        Path(str(weights) + suffix).write_bytes(Path(str(untrained_weights) + suffix).read_bytes())
+    config = Path(str(weights) + ".json")
+    before = config.read_bytes()
+    assert run("evaluate", "--corpus", fake_corpus, "--labs", "NP", *FAST_EVALUATION, "--weights", weights,
+               "--out", config) == 2
+    assert "replace an input" in _one_line_error(capsys)
+    assert config.read_bytes() == before
+
+
+def test_evaluate_report_names_the_command_that_made_it(tmp_path, fake_corpus, untrained_weights):
+    """The report's "Made by" command reproduces it: --corpus, --labs and --weights were left out,
+    so a report of one lab with other weights claimed every lab and the shipped model."""
+    out = tmp_path / "acc.md"
+    assert run("evaluate", "--corpus", fake_corpus, "--labs", "NP", *FAST_EVALUATION, "--weights", untrained_weights,
+               "--out", out) == 0
+    made_by = next(line for line in out.read_text().splitlines() if line.startswith("Made by"))
+    assert f"--corpus {fake_corpus} --labs NP --weights {untrained_weights} --pairs-per-lab 1" in made_by, made_by
+
+
+def test_evaluate_draws_synthetic_pairs_from_the_labs_asked_for(tmp_path, fake_corpus, untrained_weights, monkeypatch):
+    """With `--labs NP` the synthetic pairs are NP's worms too; they were drawn from every lab."""
+    import napari_fdlc.simulate as simulate
+
+    sources, original = [], simulate.simulate_worm
+
+    def recording(table, *args, **kwargs):
+        sources.append(Path(str(table.source)).parent.name)
+        return original(table, *args, **kwargs)
+
+    monkeypatch.setattr(simulate, "simulate_worm", recording)
+    assert run("evaluate", "--corpus", fake_corpus, "--labs", "NP", "--pairs-per-lab", "0", "--panel-worms-per-lab", "0",
+               "--synthetic-pairs", "6", "--no-cpd", "--weights", untrained_weights, "--out", tmp_path / "acc.md") == 0
+    assert sources and set(sources) == {"NP"}, sources
+
+
 def test_a_new_run_from_a_checkpoints_configuration_does_not_replace_it(tmp_path, fake_corpus, tiny_config, capsys):
     """`fdlc train --config runs/model.json` (a checkpoint's JSON) without --out took the
     checkpoint's own --out, and the new run replaced the checkpoint it was configured from."""

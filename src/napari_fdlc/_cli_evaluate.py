@@ -38,7 +38,13 @@ def run(args) -> int:
     for flag in ("pairs_per_lab", "panel_worms_per_lab", "synthetic_pairs"):
         if getattr(args, flag) < 0:
             raise FdlcError(f"--{flag.replace('_', '-')} must be 0 or more (got {getattr(args, flag)})")
-    check_output(args.out, create_folder=True)
+    from .corpus import refuse_out_in_corpus
+    from .model import model_files
+
+    # The model and the corpus are read, never written: a report over the weights' JSON or a
+    # worm's table would destroy them.
+    out = check_output(args.out, inputs=model_files(args.weights) if args.weights else (), create_folder=True)
+    refuse_out_in_corpus(out, args.corpus, "report")
     report = evaluate_corpus(
         corpus=args.corpus, labs=args.labs, weights=args.weights, pairs_per_lab=args.pairs_per_lab,
         panel_worms_per_lab=args.panel_worms_per_lab, synthetic_pairs=args.synthetic_pairs,
@@ -61,6 +67,11 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
     from .reference import build_atlas, make_panel
     from .simulate import simulate_worm
 
+    # what reproduces this report: the options given, as given
+    command = " ".join(["fdlc evaluate", *([f"--corpus {corpus}"] if corpus else []), *([f"--labs {' '.join(labs)}"] if labs else []),
+                        *([f"--weights {weights}"] if weights else []), f"--pairs-per-lab {pairs_per_lab}",
+                        f"--panel-worms-per-lab {panel_worms_per_lab}", f"--synthetic-pairs {synthetic_pairs}",
+                        *([] if with_cpd else ["--no-cpd"]), *([f"--out {out}"] if out is not None else [])])
     identifier = Identifier.load(weights)
     worms = load_corpus(corpus)
     present = {w.lab for w in worms}
@@ -137,8 +148,9 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
     # Held-out synthetic pairs: a worm and its simulated copy (published simulator magnitudes).
     rng = np.random.default_rng(0)
     synth = Scores()
+    sources = [w for w in worms if w.lab in labs]
     for _ in range(synthetic_pairs):
-        source = worms[rng.integers(len(worms))].table
+        source = sources[rng.integers(len(sources))].table
         copy = simulate_worm(source, rng)
         synth.add(identifier.label(copy.table, [source], use_colour=False), copy.table, set(source.names))
     synthetic = synth.summary()
@@ -166,8 +178,6 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
     if out is not None:
         # The plot needs matplotlib (the [test] extra); without it the report is written alone.
         plotted = _plot_reliability(calib, out.parent / "images" / "calibration.png", reliability)
-        command = (f"fdlc evaluate --pairs-per-lab {pairs_per_lab} --panel-worms-per-lab {panel_worms_per_lab} "
-                   f"--synthetic-pairs {synthetic_pairs}{'' if with_cpd else ' --no-cpd'} --out {out}")
         with atomic_write(out, "w", encoding="utf-8") as handle:
             handle.write("# Accuracy on the annotated corpus\n\n")
             handle.write(f"Made by `{command}` ({minutes:.1f} min). See docs/benchmarks.md for how to read it.\n\n")

@@ -232,16 +232,12 @@ def _atlas_parser(sub) -> None:
 
 
 def _run_atlas(args) -> int:
-    from .corpus import default_corpus_path, load_corpus
+    from .corpus import load_corpus, refuse_out_in_corpus
     from .reference import build_atlas
 
     if not 0 < args.min_frequency <= 1:
         raise FdlcError(f"--min-frequency must be a fraction of worms in (0, 1] (got {args.min_frequency})")
-    out = check_output(args.out, create_folder=True)
-    corpus = Path(args.corpus) if args.corpus else default_corpus_path()
-    if corpus is not None and corpus.resolve() in out.resolve().parents:  # worms.csv or a worm's table
-        raise FdlcError(f"{args.out}: inside the corpus folder {corpus}, which is read, never written; "
-                        "write the atlas elsewhere")
+    refuse_out_in_corpus(check_output(args.out, create_folder=True), args.corpus, "atlas")
     atlas = build_atlas(load_corpus(args.corpus, args.labs), min_frequency=args.min_frequency)
     atlas.save(args.out)
     print(f"{len(atlas.names)} names from {atlas.worms} worms of {', '.join(atlas.labs)} -> {args.out}")

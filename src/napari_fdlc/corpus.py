@@ -44,6 +44,14 @@ def default_corpus_path() -> Path | None:
     return None
 
 
+def refuse_out_in_corpus(out: Path, corpus: str | os.PathLike | None, what: str) -> None:
+    """Refuse an output file inside the corpus (``corpus`` as given, None: the default one):
+    the corpus is read, never written; ``what`` names the output in the one-line error."""
+    folder = Path(corpus) if corpus else default_corpus_path()
+    if folder is not None and folder.resolve() in Path(out).resolve().parents:  # worms.csv or a worm's table
+        raise FdlcError(f"{out}: inside the corpus folder {folder}, which is read, never written; write the {what} elsewhere")
+
+
 def load_corpus(path: str | os.PathLike | None = None, labs: tuple[str, ...] | list[str] | None = None) -> list[Worm]:
     path = Path(path) if path else default_corpus_path()
     if path is None or not (path / "worms.csv").exists():

@@ -376,10 +376,12 @@ def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int, names: bool 
 def write_table(table: NeuronTable | pd.DataFrame, path: str | os.PathLike) -> None:
     """Write our CSV layout atomically (temporary file, then rename)."""
     df = table.to_dataframe() if isinstance(table, NeuronTable) else table
-    # Positions and times to the last digit that tells two floats apart (the shortest text that
-    # reads back the same): 6 significant digits put a neuron 0.5 µm off at a stage offset of
-    # 1e5 µm, and made time stamps 1700000000.2 and .4 one time point. Other numbers keep 6.
-    exact = [c for c in (*COORDS, "t") if c in df.columns and pd.api.types.is_float_dtype(df[c])]
+    # Positions, times and colours to the last digit that tells two floats apart (the shortest
+    # text that reads back the same): 6 significant digits put a neuron 0.5 µm off at a stage
+    # offset of 1e5 µm, made time stamps 1700000000.2 and .4 one time point, and changed raw
+    # intensities of 7 digits that a table copied on (fdlc simulate) should carry as they were.
+    # Other numbers (probabilities, scores) keep 6.
+    exact = [c for c in (*COORDS, "t", *COLOUR_CHANNELS, "GFP") if c in df.columns and pd.api.types.is_float_dtype(df[c])]
     if exact:
         df = df.assign(**{c: [repr(v) if np.isfinite(v) else "" for v in df[c].to_numpy(float).tolist()] for c in exact})
     with atomic_write(path, "w", encoding="utf-8", newline="") as handle:
