@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from napari_fdlc.geometry import _grid_centres, apply_affine, fit_affine, fit_warp
+from napari_fdlc.errors import FdlcError
+from napari_fdlc.geometry import _grid_centres, apply_affine, fit_affine, fit_warp, refuse_flat
 from napari_fdlc.reference import generate_worm
 
 
@@ -91,3 +93,22 @@ def test_fit_warp_is_exact_for_stage_coordinates():
         src, dst = _rigid_pair(offset)
         warp = fit_warp(src, dst, np.ones(len(src)))
         assert np.abs(warp(src) - dst).max() < 0.01, offset
+
+
+def test_a_coordinate_that_is_not_a_number_is_refused():
+    """One NaN position made fit_affine's whole answer NaN, silently, and refuse_flat's SVD fail
+    with LinAlgError."""
+    xyz = generate_worm(seed=1).xyz
+    bad = xyz.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(FdlcError, match="not a finite number"):
+        fit_affine(bad, xyz + 1.0)
+    with pytest.raises(FdlcError, match="not a finite number"):
+        refuse_flat(bad, "t", 10)
+
+
+def test_fit_warp_takes_lists_as_fit_affine_does():
+    """fit_warp indexed its input with a mask, which a list refuses (TypeError)."""
+    xyz = generate_worm(seed=1).xyz
+    warp = fit_warp(xyz.tolist(), (xyz + 1.0).tolist(), np.ones(len(xyz)))
+    assert np.allclose(warp(xyz), xyz + 1.0, atol=1e-3)

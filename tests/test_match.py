@@ -3,6 +3,8 @@ import itertools
 import numpy as np
 import pytest
 
+from napari_fdlc.errors import FdlcError
+
 from napari_fdlc.match import assign, make_labelling, min_cost_matching, name_probabilities, one_to_one, top_k
 
 
@@ -155,3 +157,30 @@ def test_fixed_name_unknown_to_the_vocabulary_does_not_take_another_name():
     assert result.auto_id[0] == "Z"
     assert result.auto_id[1] == "A", result.auto_id
     assert result.auto_conf[0] == 0.0, result.auto_conf
+
+
+def _probs(n: int, v: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).dirichlet(np.ones(v + 1), size=n)[:, :v]
+
+
+def test_every_name_decided_leaves_the_other_neurons_unnamed():
+    """The user decided every name and a neuron is left: it gets no name. assign indexed an
+    empty column array (IndexError), through Identifier.label too."""
+    assert make_labelling(["A", "B"], _probs(3, 2), {0: "A", 1: "B"}).auto_id == ["A", "B", ""]
+    assert list(assign(np.zeros((3, 0)))) == [-1, -1, -1]
+
+
+@pytest.mark.parametrize("call", [
+    lambda: make_labelling(["A", "A", "C"], np.array([[0.9, 0.0, 0.0], [0.0, 0.9, 0.0]])),  # gave "A" twice
+    lambda: assign(_probs(5, 5), {0: 1, 1: 1}),  # gave column 1 to both rows
+    lambda: one_to_one(_probs(5, 5), {0: 1, 1: 1}),  # row 0 silently lost its decided name
+    lambda: assign(_probs(5, 5), {7: 1}),  # a row outside the answer
+    lambda: assign(_probs(5, 2), no_match_weight=0.0),  # scipy's "cost matrix is infeasible"
+    lambda: name_probabilities([(_probs(4, 5), ["A", "B"])]),  # columns without a name were dropped
+], ids=["repeated vocabulary", "assign: one column for two rows", "one_to_one: one column for two rows",
+        "row outside", "no_match_weight 0", "fewer names than columns"])
+def test_inconsistent_inputs_are_refused(call):
+    """One name per neuron, one column per name: what breaks it is an FdlcError, not a name given
+    twice, a lost decision or a scipy traceback."""
+    with pytest.raises(FdlcError):
+        call()

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from napari_fdlc.errors import ModelError
+from napari_fdlc.errors import FdlcError, ModelError
 from napari_fdlc.reference import (Atlas, atlas_worm, build_atlas, generate_worm, load_atlas, load_panel, make_panel,
                                    shipped_atlas_path)
 from napari_fdlc.table import NeuronTable
@@ -170,3 +170,21 @@ def test_load_atlas_refuses_a_worm_scale_that_is_not_positive(tmp_path, scale):
     path = _edited_atlas(tmp_path, header=header)
     with pytest.raises(ModelError, match="atlas"):
         load_atlas(path)
+
+
+def test_an_atlas_keeps_lab_names_with_spaces(tmp_path):
+    """The header joined labs with spaces and load split on them: 'my lab' came back as two
+    labs. Atlases written before (spaces between labs) still load."""
+    from dataclasses import replace
+
+    replace(load_atlas(), labs=("my lab", "x")).save(tmp_path / "a.csv")
+    assert Atlas.load(tmp_path / "a.csv").labs == ("my lab", "x")
+    old = tmp_path / "old.csv"
+    text = (tmp_path / "a.csv").read_text().splitlines()
+    old.write_text("\n".join(["# napari-fdlc atlas: 97 worms of EY KK NP; worm scale 1.2623", *text[1:]]) + "\n")
+    assert Atlas.load(old).labs == ("EY", "KK", "NP")
+
+
+def test_generate_worm_refuses_a_negative_count_of_unnamed_neurons():
+    with pytest.raises(FdlcError):
+        generate_worm(seed=0, n_unnamed=-1)

@@ -1,7 +1,9 @@
 """Registration of a test worm onto a reference (napari_fdlc.register): the atlas or a template."""
 
 import numpy as np
+import pytest
 
+from napari_fdlc.errors import FdlcError
 from napari_fdlc.reference import atlas_worm, load_atlas
 from napari_fdlc.register import register, template_mixture
 
@@ -459,3 +461,9 @@ def test_head_window_starts_are_one_per_distinct_window_of_the_whole_slide():
         firsts = [s for k, s in enumerate(slide) if k == 0 or inside[k] != inside[k - 1]]
         np.testing.assert_allclose(_window_starts(x, length, step), firsts, rtol=0, atol=1e-6)
     assert len(_window_starts(np.r_[rng.uniform(0, 100, 60), 1e30], 100.0, 10.0)) < 20
+
+
+def test_nothing_to_place_is_refused():
+    """A test without neurons gave mean-of-empty warnings, then an IndexError."""
+    with pytest.raises(FdlcError, match="nothing to place"):
+        register(atlas_worm(load_atlas(), np.random.default_rng(0)).subset(np.arange(0)), load_atlas().mixture())

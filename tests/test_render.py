@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.distance import pdist
 
 from napari_fdlc.errors import FdlcError
+from napari_fdlc.io.images import ImageError
 from napari_fdlc.render import align_worm, colour_intensities, random_worm, render_stack, spread_apart
 from napari_fdlc.table import NeuronTable
 
@@ -210,3 +211,27 @@ def test_identity_properties_are_independent_draws():
     # Without identity the two are independent (r ~ -0.2 here); with it r ~ 0.83.
     r = np.corrcoef(np.log(truth.extra["radius_um"].to_numpy(float)), np.log(truth.colours["W"]))[0, 1]
     assert abs(r) < 0.5, r
+
+
+def _small_worm(n: int = 12) -> NeuronTable:
+    from napari_fdlc.reference import generate_worm
+
+    return generate_worm(seed=1).subset(np.arange(n))
+
+
+@pytest.mark.parametrize("settings", [
+    {"background_photons": 1e20}, {"gut_strength": 1e20}, {"bleed": 1e20},  # numpy's "lam value too large"
+    {"voxel_size_zyx": (1.0, 0.25)}, {"psf_sigma_um": (1.0, 0.25)}, {"margin_um": (1.0, 0.25)},  # unpacking errors
+    {"identity": np.arange(5)},  # a reshape error
+    {"identity": np.full(12, 10**13)},  # drew 1e13 values per property: MemoryError (1e9: 3 minutes, 70 GB)
+    {"nucleus_radius_um": "two"},
+], ids=["background", "gut", "bleed", "voxel size", "psf", "margin", "identity length", "identity size", "not a number"])
+def test_settings_that_cannot_be_rendered_are_one_image_error(settings):
+    with pytest.raises(ImageError):
+        render_stack(_small_worm(), **settings)
+
+
+def test_a_setting_given_as_text_of_a_number_is_used():
+    """nucleus_radius_um="2" was checked as a number, then compared as text (TypeError)."""
+    stack, truth = render_stack(_small_worm(), nucleus_radius_um="2")
+    assert len(truth) == 12

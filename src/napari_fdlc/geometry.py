@@ -104,7 +104,7 @@ FLAT_UM = 1.0  # neurons thinner than this (SD across their plane) have no hande
 def thickness_um(xyz: np.ndarray) -> float:
     """The SD of the positions across their best-fitting plane: about 0 for a table whose z was
     lost (a projection), where a worm and its mirror image are the same points."""
-    xyz = np.asarray(xyz, float)
+    xyz = _finite(xyz, "positions")
     if len(xyz) < 3:
         return 0.0
     return float(np.linalg.svd(xyz - xyz.mean(axis=0), compute_uv=False)[-1] / np.sqrt(len(xyz)))
@@ -121,9 +121,10 @@ def refuse_flat(xyz: np.ndarray, source: str, min_neurons: int) -> None:
 def fit_affine(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None, ridge: float = 1e-3) -> np.ndarray:
     """Weighted least-squares affine map ``dst ≈ [src, 1] @ A`` (A is 4×3), regularised toward
     a pure translation so that a handful of matches cannot produce a wild shear."""
-    src = np.asarray(src, float)
-    dst = np.asarray(dst, float)
+    src, dst = _finite(src, "source positions"), _finite(dst, "target positions")
     w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
+    if not (len(src) == len(dst) == len(w)):
+        raise FdlcError(f"fit_affine: {len(src)} source positions, {len(dst)} targets and {len(w)} weights (one each)")
     total = w.sum()
     # Solved about the points' weighted means: the normal equations of coordinates far from the
     # origin (a microscope stage's, ~1e6 µm) lose every digit a neuron's position needs.
@@ -143,6 +144,15 @@ def fit_affine(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = No
 
 
 _LINEAR = np.arange(3)  # the rows of an affine's linear part (row 3 is the shift)
+
+
+def _finite(xyz, what: str) -> np.ndarray:
+    """``xyz`` as floats, refused (FdlcError) when a coordinate is not a finite number: one NaN
+    makes a fit all NaN, silently, and an SVD fail with LinAlgError."""
+    xyz = np.asarray(xyz, float)
+    if not np.isfinite(xyz).all():
+        raise FdlcError(f"{what}: a coordinate is not a finite number (NaN or infinite)")
+    return xyz
 
 
 def apply_affine(xyz: np.ndarray, affine: np.ndarray) -> np.ndarray:
@@ -232,7 +242,7 @@ def fit_warp(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, sigma: float
     centres are the mean positions of the neurons in each occupied cell of a grid of sigma / 2,
     a few dozen for a head instead of one per neuron, which a displacement this smooth does
     not need. Fitting and applying the warp are then several times cheaper."""
-    weights = np.asarray(weights, float)
+    src, dst, weights = np.asarray(src, float), np.asarray(dst, float), np.asarray(weights, float)
     affine = fit_affine(src, dst, weights)
     keep = weights > 0
     if sigma <= 0 or keep.sum() < 4:

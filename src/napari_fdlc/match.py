@@ -52,9 +52,13 @@ def name_probabilities(
     templates the per-name probabilities are averaged: a name a template lacks gets 0 from it,
     so names that few templates know are, rightly, less likely.
     """
+    n_test = per_template[0][0].shape[0]
+    for probs, names in per_template:
+        if probs.shape[0] != n_test or probs.shape[1] != len(names):
+            raise FdlcError(f"name_probabilities: an answer of shape {probs.shape} for {len(names)} template names and "
+                            f"{n_test} test neurons (one column per template neuron, one row per test neuron)")
     vocabulary = sorted({n for _, names in per_template for n in names if n})
     column = {n: i for i, n in enumerate(vocabulary)}
-    n_test = per_template[0][0].shape[0]
     total = np.zeros((n_test, len(vocabulary)))
     for probs, names in per_template:
         names = np.asarray(names, dtype=object)
@@ -78,13 +82,14 @@ def assign(probs: np.ndarray, fixed: dict[int, int] | None = None, no_match_weig
     to a user than an empty cell.
     """
     n, v = probs.shape
+    _check_no_match_weight(no_match_weight)
+    fixed = _checked_columns(fixed, n, v)
     result = np.full(n, -1, dtype=int)
-    fixed = dict(fixed or {})
     for row, col in fixed.items():
         result[row] = col
     rows = np.array([r for r in range(n) if r not in fixed], dtype=int)
     cols = np.array([c for c in range(v) if c not in set(fixed.values())], dtype=int)
-    if len(rows) == 0:
+    if len(rows) == 0 or len(cols) == 0:  # no one left to name, or no name left: the rest stay unnamed
         return result
     p = probs[np.ix_(rows, cols)]
     no_match = np.clip(1.0 - probs[rows].sum(axis=1), _TINY, 1.0)
@@ -97,8 +102,29 @@ def assign_log(log_p: np.ndarray, no_match_weight: float = 1.0) -> np.ndarray:
     """:func:`assign` (no fixed rows) on log-probabilities (N, M + 1; the last column "no
     match") as a model gives them, without taking their exp and log again: the same costs,
     clipped alike."""
+    _check_no_match_weight(no_match_weight)
     floored = np.maximum(log_p, np.log(_TINY))
     return min_cost_matching(-floored[:, :-1], -floored[:, -1] - np.log(no_match_weight))
+
+
+def _check_no_match_weight(weight: float) -> None:
+    if not 0 < weight < np.inf:
+        raise FdlcError(f"no_match_weight must be a positive number (got {weight!r}): at 0 leaving a neuron unnamed "
+                        "would cost infinitely, which more neurons than names cannot avoid")
+
+
+def _checked_columns(fixed: dict[int, int] | None, n: int, v: int) -> dict[int, int]:
+    """``fixed`` (row -> column, -1: a name without a column) checked against an (n, v) answer:
+    rows 0..n-1 and columns -1..v-1, and no column given to two rows (one neuron per name)."""
+    fixed = dict(fixed or {})
+    taken = {}
+    for row, col in fixed.items():
+        if not (0 <= row < n and -1 <= col < v):
+            raise FdlcError(f"decided column {col} for row {row}: outside the answer's {n} rows and {v} columns")
+        if col >= 0 and col in taken:
+            raise FdlcError(f"decided column {col} is on rows {taken[col]} and {row}: a name belongs to one neuron")
+        taken[col] = row
+    return fixed
 
 
 def min_cost_matching(cost: np.ndarray, unmatched: np.ndarray) -> np.ndarray:
@@ -138,9 +164,10 @@ def one_to_one(probs: np.ndarray, fixed: dict[int, int] | None = None, iteration
     0.2–7.6 points, the calibration error of pairs (position only) down on 4 of 5 labs. ``fixed`` rows (row -> column, the
     user's decisions) are certain, which takes their names away from every other neuron."""
     p = np.clip(np.asarray(probs, float), 0.0, None)
+    fixed = _checked_columns(fixed, *p.shape)
     if p.size == 0:
         return p
-    for row, col in (fixed or {}).items():
+    for row, col in fixed.items():
         p[row] = 0.0  # a name without a column (col -1): certainly none of the others
         if col >= 0:
             p[:, col] = 0.0
@@ -185,6 +212,9 @@ def make_labelling(
     probabilities are hedged (the panel hedges its chirality but assigns on its best guess).
     The probabilities reported (candidates, ``auto_conf``) are :func:`one_to_one`'s; a fixed
     row keeps the model's own probability of the user's name as its ``auto_conf``."""
+    if len(set(names)) != len(names):
+        repeated = sorted({n for n in names if names.count(n) > 1})
+        raise FdlcError(f"make_labelling: the names {', '.join(map(repr, repeated))} occur more than once; a name is one column")
     column = {n: i for i, n in enumerate(names)}
     fixed = check_fixed(fixed, len(probs))
     fixed_cols = {row: column.get(name, -1) for row, name in fixed.items()}

@@ -134,7 +134,7 @@ class Atlas:
 
     def save(self, path: str | Path) -> None:
         with atomic_write(path, "w", encoding="utf-8", newline="") as handle:
-            labs = " ".join(self.labs)
+            labs = ", ".join(self.labs)  # a lab's name may hold spaces
             handle.write(f"# napari-fdlc atlas: {self.worms} worms of {labs}; worm scale {self.worm_scale:.4f}\n")
             self.to_frame().to_csv(handle, index=False, float_format="%.4f")
 
@@ -146,7 +146,9 @@ class Atlas:
             df = pd.read_csv(path, comment="#")
             counts, _, scale = header.partition("; worm scale ")
             worms = int(counts.split(":")[1].split()[0])
-            labs = tuple(counts.split(" of ")[1].split())
+            labs = counts.split(" of ", 1)[1]
+            # ", " between labs; atlases written before session 31 have spaces
+            labs = tuple(lab.strip() for lab in labs.split(",")) if "," in labs else tuple(labs.split())
             _check_numbers(df, path)
             worm_scale = float(scale) if scale else 1.0
             if not (np.isfinite(worm_scale) and worm_scale > 0):
@@ -339,6 +341,8 @@ def generate_worm(seed: int = 0, atlas: Atlas | None = None, n_unnamed: int = 0)
     placed in a recording frame (random XY angle, positive coordinates), with raw-looking
     positive colours (none from an atlas without colour); ``n_unnamed`` extra unlabelled
     neurons as a segmentation would find."""
+    if n_unnamed < 0:
+        raise FdlcError(f"generate_worm: n_unnamed must be 0 or more (got {n_unnamed})")
     atlas = atlas or load_atlas()
     rng = np.random.default_rng(seed)
     worm = atlas_worm(atlas, rng, keep_fraction=0.6)

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .colour import IDENTITY_CHANNELS, has_colour, normal_scores, read_channels
+from .errors import FdlcError
 from .geometry import canonical_frame
 from .table import YOUNG_ADULT_SPACING_UM, NeuronTable, neuron_spacing
 
@@ -151,6 +152,9 @@ def register(test: NeuronTable, mixture: Mixture, use_colour: bool = True, itera
     and PARTIAL_VIEW_KEEP times as many starts are kept. Onto a template (in µm like the test),
     a test denser than a young adult's head is taken to the template's size the same way, and a
     test shorter than TEMPLATE_SHORT_VIEW of it starts at offsets along it too."""
+    if len(test) == 0 or not chiralities or keep < 1:
+        raise FdlcError(f"register: nothing to place ({len(test)} neurons, chiralities {chiralities}, keep {keep}); "
+                        "a test with neurons, one chirality or more and keep ≥ 1 are needed")
     canon, _, frame = canonical_frame(test.xyz)
     # A smaller worm than a young adult is taken up to one's size (the atlas's size_factor is 1);
     # onto a template, to the template's own size.

@@ -44,6 +44,8 @@ BLEED = np.array([
 ])
 # Photon counts far beyond what a uint16 camera records are a mistake (and overflow the draws).
 MAX_PHOTONS = 1e6
+# Identities are labels of a recording's neurons; each property draws max(identity) + 1 values.
+MAX_IDENTITY = 10**7
 # A stack of more voxels is a mistake (positions not in µm, a shape in the wrong unit): 2 GB of
 # float32 photons per channel.
 MAX_VOXELS = 5e8
@@ -153,6 +155,10 @@ def render_stack(
     centre_um = (shape - 1) * vox / 2
     zyx = zyx - (zyx.max(axis=0) + zyx.min(axis=0)) / 2 + centre_um
     n = len(zyx)
+    if identity is not None:
+        identity = np.asarray(identity)
+        if identity.shape != (n,) or not np.issubdtype(identity.dtype, np.integer) or identity.max(initial=0) > MAX_IDENTITY:
+            raise ImageError(f"render: identity must be one whole number per neuron ({n}), -1 to {MAX_IDENTITY:.0e}")
 
     properties = itertools.count()  # each property's own stream of identity_seed
 
@@ -212,6 +218,10 @@ def render_stack(
             photons[(c,) + box] += (p.peak_photons * amps_detected[i, c]) * profile
 
     _add_background(photons, zyx, p, channels, shape, vox, rng)
+    brightest = float(photons.max())
+    if not brightest <= MAX_PHOTONS * 1e3:  # (NaN too) numpy's Poisson draw refuses lam above ~1e19
+        raise ImageError(f"render: the settings make {brightest:.1e} photons in a voxel; background_photons, haze, "
+                         "gut_strength or bleed is too large")
     data = np.empty(photons.shape, dtype=np.uint16)
     for c in range(n_ch):  # one channel at a time: Poisson draws are int64, 4x the image
         counts = rng.poisson(np.maximum(photons[c], 0)).astype(np.float32)
@@ -301,16 +311,23 @@ def _on_or_off(u: np.ndarray, p_on: float, on: tuple[float, float], off: tuple[f
 
 
 def _checked(p: RenderParams) -> RenderParams:
-    """``p``, or an ImageError naming the first setting that cannot be rendered."""
+    """``p`` with its settings as floats, or an ImageError naming the first setting that cannot
+    be rendered: a tuple setting (z, y, x) needs three numbers, every other one a number."""
+    defaults = RenderParams()
+    numbers = {}
     for name, value in vars(p).items():
         if isinstance(value, bool):  # gut
             continue
+        size = np.size(getattr(defaults, name))
         try:
-            numbers = np.asarray(value, dtype=float)
+            v = np.asarray(value, dtype=float)
         except (TypeError, ValueError):
-            numbers = np.array(np.nan)
-        if not np.isfinite(numbers).all() or (numbers < 0).any():
-            raise ImageError(f"render: {name} must be finite numbers of 0 or more, not {value!r}")
+            v = np.array(np.nan)
+        if v.size != size or not np.isfinite(v).all() or (v < 0).any():
+            what = "3 finite numbers (z, y, x)" if size == 3 else "a finite number"
+            raise ImageError(f"render: {name} must be {what} of 0 or more, not {value!r}")
+        numbers[name] = tuple(v.ravel().tolist()) if size == 3 else float(v)
+    p = RenderParams(**{**vars(p), **numbers})
     if min(p.voxel_size_zyx) <= 0 or p.nucleus_radius_um <= 0:
         raise ImageError("render: the voxel size and the nucleus radius must be above 0")
     if not 0 < p.peak_photons <= MAX_PHOTONS:
