@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from napari_fdlc.errors import TableError
-from napari_fdlc.table import NeuronTable, parse_name, read_table, write_neuropal_id, write_table
+from napari_fdlc.table import NEUROPAL_ID_HEADER, NeuronTable, parse_name, read_table, write_neuropal_id, write_table
 
 
 def write(path, text):
@@ -141,3 +141,51 @@ def test_a_neuropal_id_exports_problems_name_its_own_columns(tmp_path):
     npid.write_text("\n".join(lines) + "\n")
     with pytest.raises(TableError, match=r"column 'Real X \(um\)': abc"):
         read_table(npid)
+
+
+def _csv(tmp_path, text: str, name: str = "t.csv"):
+    path = tmp_path / name
+    path.write_bytes(text.encode("utf-8"))
+    return path
+
+
+def test_rows_ending_in_a_comma_keep_their_columns(tmp_path):
+    """Data rows ending in ',' (Excel leaves them) under a header without: pandas took the first
+    column as the index and read x from y_um and z from R, silently (fdlc label then wrote the
+    shifted positions and exited 0)."""
+    table = read_table(_csv(tmp_path, "x_um,y_um,z_um,R\n1,2,3,10,\n4,5,6,11,\n7,8,9,12,\n"))
+    assert table.xyz.tolist() == [[1, 2, 3], [4, 5, 6], [7, 8, 9]]
+    assert table.colours["R"].tolist() == [10, 11, 12]
+
+
+@pytest.mark.parametrize("text, message", [
+    ("x_um,y_um,z_um\n1,2,3,4\n4,5,6\n", "line 2 has 4 fields, the header 3"),  # blamed line 3's "empty" z
+    ("x_um,y_um,z_um,R,R\n1,2,3,10,99\n4,5,6,11,98\n", "two columns are named 'R'"),  # read as R and R.1
+    ("x_um,y_um,z_um, x_um\n1,2,3,100\n4,5,6,200\n", "two columns are named 'x_um'"),
+    ("x_um;y_um;z_um;label\n1,5;2,5;3,5;AVAL\n", "separated by semicolons"),  # "missing column(s) x_um, ..."
+    ("x_um\ty_um\tz_um\n1.5\t2.5\t3.5\n", "separated by tabs"),
+    ("sep=;\nx_um;y_um;z_um\n1;2;3\n", "separated by ';'"),
+], ids=["extra field", "repeated colour", "repeated position", "semicolons", "tabs", "Excel sep=;"])
+def test_a_table_pandas_would_misread_is_one_line(tmp_path, text, message):
+    with pytest.raises(TableError, match=message):
+        read_table(_csv(tmp_path, text))
+
+
+def test_excels_separator_line_is_skipped(tmp_path):
+    """Excel's 'sep=,' first line: the table was refused for missing columns that are there."""
+    table = read_table(_csv(tmp_path, "sep=,\r\nx_um,y_um,z_um,label\r\n1.5,2.5,3.5,AVAL\r\n4.5,5.5,6.5,AVAR\r\n"))
+    assert table.xyz[:, 0].tolist() == [1.5, 4.5] and list(table.labels) == ["AVAL", "AVAR"]
+
+
+def test_a_colour_written_nan_is_no_reading(tmp_path):
+    """MATLAB (NeuroPAL_ID) and R write a missing value as NaN / NA: read as an empty colour cell
+    (the volume's median), not refused ("NaN is not a finite number"). Positions stay refused."""
+    def row(uid, x, y, z):
+        return f"{uid},1,0,,,,{x},{y},{z},,1,1,1,,NaN,0.5,NA,nan,,NaN,NaN,NaN"
+    pre = "Version,1.0\nGFP,0\nZ-Score Means,0,0,0,0\nZ-Score SDs,1,1,1,1\nNeuron Count,2\nComment,x\n\n"
+    text = pre + ",".join(NEUROPAL_ID_HEADER) + "\n" + row("AVAL", 1, 2, 3) + "\n" + row("AVAR", 4, 5, 6) + "\n"
+    table = read_table(_csv(tmp_path, text, "npid.csv"))
+    assert list(table.labels) == ["AVAL", "AVAR"] and table.colours["G"].tolist() == [0.5, 0.5]
+    with pytest.raises(TableError, match="NaN is not a finite number"):
+        read_table(_csv(tmp_path, "x_um,y_um,z_um\n1,2,NaN\n", "pos.csv"))
+

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -239,8 +240,39 @@ def read_table(path: str | os.PathLike, names: bool = True, unique_names: bool =
 
 
 def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
+    """The CSV ``text`` (after ``skiprows`` lines) as strings, refused in one line where pandas
+    would misread it silently: a row with more fields than the header (pandas then takes the
+    first column as the index and shifts every other one), two columns of one name (pandas
+    renames the second 'R.1'), columns separated by ';' or tabs. Excel's 'sep=,' line is skipped."""
+    first = next(iter(text.splitlines()[skiprows:]), "").strip()
+    if first.lower().startswith("sep="):
+        if first[4:] != ",":
+            raise TableError(f"{name}: its first line says the columns are separated by {first[4:]!r}; "
+                             "save it as a comma-separated CSV (UTF-8, '.' before decimals)")
+        skiprows += 1
+    records = csv.reader(io.StringIO(text))
+    for _ in range(skiprows):
+        next(records, None)
+    header = next(records, None)
+    if header is not None and len(header) == 1:
+        for separator, called in ((";", "semicolons"), ("\t", "tabs")):
+            if separator in header[0]:
+                raise TableError(f"{name}: the columns are separated by {called}, not commas; save it as a "
+                                 "comma-separated CSV (UTF-8, '.' before decimals)")
+    if header is not None:
+        names = [h.strip() for h in header]
+        repeated = sorted({h for h in names if h and names.count(h) > 1})  # blank ones are spacers (NeuroPAL_ID)
+        if repeated:
+            raise TableError(f"{name}: two columns are named '{repeated[0]}' (spaces around names do not count); "
+                             "give each column its own name")
+        for row in records:  # a field beyond the header's: every column would shift (or a value be lost)
+            if len(row) > len(header) and any(cell.strip() for cell in row[len(header):]):
+                raise TableError(f"{name}: line {records.line_num} has {len(row)} fields, the header {len(header)}; "
+                                 "each row needs one value per column")
     try:
-        df = pd.read_csv(io.StringIO(text), skiprows=skiprows, dtype=str, keep_default_na=False)
+        with warnings.catch_warnings():  # empty fields beyond the header (Excel's trailing commas) are dropped
+            warnings.simplefilter("ignore", pd.errors.ParserWarning)
+            df = pd.read_csv(io.StringIO(text), skiprows=skiprows, dtype=str, keep_default_na=False, index_col=False)
     except pd.errors.EmptyDataError:
         raise TableError(f"{name}: the file has no header row") from None
     except pd.errors.ParserError as exc:
@@ -274,8 +306,8 @@ def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, a
     raw = df[column].astype(str).str.strip()
     values = pd.to_numeric(raw.where(raw != "", "nan"), errors="coerce").to_numpy(dtype=np.float64, copy=True)
     bad = ~np.isfinite(values)
-    if allow_empty:
-        bad &= (raw != "").to_numpy()
+    if allow_empty:  # no reading: an empty cell, or NaN / NA as MATLAB (NeuroPAL_ID) and R write it
+        bad &= ~raw.str.lower().isin(("", "nan", "na")).to_numpy()
     if bad.any():
         row = int(np.argmax(bad))
         shown = raw.iloc[row] or "an empty cell"
