@@ -189,3 +189,10 @@ def test_a_colour_written_nan_is_no_reading(tmp_path):
     with pytest.raises(TableError, match="NaN is not a finite number"):
         read_table(_csv(tmp_path, "x_um,y_um,z_um\n1,2,NaN\n", "pos.csv"))
 
+
+def test_a_position_column_written_otherwise_is_named_in_the_error(tmp_path):
+    """'X (um)' or 'Y_UM' for x_um, y_um: refused as missing columns without a word on the
+    columns that are there under another spelling."""
+    with pytest.raises(TableError, match=r"rename 'X \(um\)' to x_um; rename 'Y_UM' to y_um"):
+        read_table(_csv(tmp_path, "X (um),Y_UM,z_um\n1,2,3\n"))
+

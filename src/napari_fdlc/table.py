@@ -316,6 +316,11 @@ def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, a
     return values
 
 
+def _letters(column: str) -> str:
+    """A column name's letters alone, lower case, µ as u: 'X (um)' and 'x_um' are 'xum'."""
+    return "".join(ch for ch in str(column).lower().replace("µ", "u") if ch.isalpha())
+
+
 def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line: int = 2, names: bool = True,
                          unique_names: bool = True, file_columns: dict[str, str] | None = None) -> NeuronTable:
     """Validate a data frame in our column layout and turn it into a :class:`NeuronTable`.
@@ -330,9 +335,12 @@ def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line:
     shown = file_columns or {}
     missing = [c for c in COORDS if c not in df.columns]
     if missing:
+        # a column that is one of them written otherwise ('X (um)', 'x_UM', 'x [µm]'): say which
+        alike = {c: [f for f in df.columns if _letters(f) == _letters(c)] for c in missing}
+        hint = "; ".join(f"rename '{found[0]}' to {c}" for c, found in alike.items() if found)
         raise TableError(
             f"{source}: missing column(s) {', '.join(shown.get(c, c) for c in missing)} "
-            f"(a neuron table needs {', '.join(shown.get(c, c) for c in COORDS)})"
+            f"(a neuron table needs {', '.join(shown.get(c, c) for c in COORDS)}{'; ' + hint if hint and not shown else ''})"
         )
     if len(df) == 0:
         raise TableError(f"{source}: the table has no rows")
