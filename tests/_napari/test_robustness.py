@@ -12,6 +12,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 from scipy.spatial import cKDTree
 
 from napari_fdlc._napari._layers import is_image_layer, layer_xyz_um
@@ -501,3 +502,42 @@ def test_a_template_file_with_a_repeated_name_says_so_in_napari(make_napari_view
     widget.add_template_file(path)
     assert any(labels[named[0]] in m for m in _notifications_since(before)), \
         _notifications_since(before)
+
+
+@pytest.mark.parametrize("moved", ["every channel", "R only"])
+def test_an_image_moved_in_the_viewer_is_refused_in_one_message(labelled_viewer, moved):
+    """Neurons are found and coloured in the stack's own voxels. With the image layers given a
+    translate, the neuron-ID points landed off the nuclei (median 6.3 µm) and the colours under
+    a Points layer moved alike were read elsewhere (correlation 0.07 with the true ones); with
+    R alone moved, the channels were stacked voxel by voxel: colours from the wrong cells.
+    Now: one message, nothing named."""
+
+    viewer, widget = labelled_viewer
+    for layer in viewer.layers:
+        if is_image_layer(layer) and (moved == "every channel" or layer.name.endswith("[R]")):
+            layer.translate = (5.0, 10.0, 15.0)
+    assert widget.auto_label() is None
+    assert "shifted in the viewer" in widget.last_error
+
+
+def test_decisions_survive_renaming_an_image_made_in_napari(make_napari_viewer, identifier, templates):
+    """An image made in napari (no file) is known by its name and data; renamed after decisions
+    were made, Auto-label again started a session without them and said nothing. The key is
+    now kept in the layer's metadata at the first run."""
+    from napari_fdlc.sample import load_sample
+
+    stack, _ = load_sample()
+    viewer = make_napari_viewer()
+    for i, role in enumerate(stack.channel_roles):
+        viewer.add_image(np.asarray(stack.data[i]), name=f"c [{role}]", scale=tuple(stack.voxel_size_zyx))
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    widget.auto_label()
+    widget.assign(0, "AVAL")
+    widget.assign(1, "AVAR")
+    viewer.layers["c [W]"].name = "worm1 [W]"
+    widget.auto_label()
+    assert widget.last_error is None, widget.last_error
+    assert sorted(n for n in widget.session.user_id if n) == ["AVAL", "AVAR"]
+

@@ -132,6 +132,14 @@ def stack_from_layers(images: dict, source: str, recording: bool = False):
     scales = {tuple(np.round(np.asarray(layer.scale[-3:], dtype=float), 9)) for layer in layers}
     if len(scales) != 1:
         raise FdlcError("the chosen channels have different voxel sizes (layer scale); choose channels of one stack")
+    # Neurons are found and their colours read in the stack's own voxels, from 0: a layer moved
+    # in the viewer would put the points, and the colours read under other points, off by that.
+    for layer in layers:
+        shift = np.asarray(layer.translate, dtype=float)[-3:]
+        if np.any(shift != 0):
+            raise FdlcError(f"the image layer '{layer.name}' is shifted in the viewer (translate z, y, x = "
+                            f"{', '.join(f'{v:g}' for v in shift)}); neurons are placed in the image's own voxels: "
+                            "set its translate to 0 (layer.translate = 0 in napari's console) or open the file again")
     arrays = [layer.data[(0,) * (layer.data.ndim - axes)] for layer in layers]
     if all(isinstance(a, np.ndarray) for a in arrays) and not recording:
         data = np.stack(arrays)

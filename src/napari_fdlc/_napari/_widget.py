@@ -697,6 +697,9 @@ class AutoLabelWidget(QWidget):
         if images:
             key_layer = images.get("W") or next(iter(images.values()))
             image_key = image_key_of(key_layer)
+            # kept with the layer: an image made in napari is known by its name, which the user may change
+            key_layer.metadata = {**(key_layer.metadata or {}),
+                                  META_KEY: {**((key_layer.metadata or {}).get(META_KEY) or {}), "image": image_key}}
             base_name = ((key_layer.metadata or {}).get(META_KEY) or {}).get("stack_name")
 
         own = source != SEGMENT and self.layer is not None and source == self.layer.name and self.session is not None
