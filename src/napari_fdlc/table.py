@@ -277,6 +277,10 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
         raise TableError(f"{name}: the file has no header row") from None
     except pd.errors.ParserError as exc:
         raise TableError(f"{name}: not a valid CSV file ({str(exc).splitlines()[0]})") from None
+    # A row of blank cells (',,,,' as Excel leaves below a table) is no neuron: dropped, as a blank line is
+    blank = (df.isna() | df.apply(lambda column: column.str.strip().eq(""))).all(axis=1)
+    if blank.any():
+        df = df[~blank].reset_index(drop=True)
     # Kept for messages only (the file's own line of a bad cell: blank lines and quoted line
     # breaks shift the rows), and read again only then.
     df.attrs["csv"] = (text, skiprows)
@@ -289,7 +293,7 @@ def _record_lines(text: str, skiprows: int) -> list[int]:
     starts, previous = [], 0
     for row in reader:
         start, previous = previous + 1, reader.line_num
-        if start > skiprows and row and not (len(row) == 1 and not row[0].strip()):
+        if start > skiprows and any(cell.strip() for cell in row):  # as _read_csv: no blank line, no row of blank cells
             starts.append(start)
     return starts[1:]  # the first is the header
 
