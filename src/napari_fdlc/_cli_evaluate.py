@@ -68,10 +68,11 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
     from .simulate import simulate_worm
 
     # what reproduces this report: the options given, as given
-    command = " ".join(["fdlc evaluate", *([f"--corpus {corpus}"] if corpus else []), *([f"--labs {' '.join(labs)}"] if labs else []),
-                        *([f"--weights {weights}"] if weights else []), f"--pairs-per-lab {pairs_per_lab}",
-                        f"--panel-worms-per-lab {panel_worms_per_lab}", f"--synthetic-pairs {synthetic_pairs}",
-                        *([] if with_cpd else ["--no-cpd"]), *([f"--out {out}"] if out is not None else [])])
+    command = ["fdlc evaluate"] + [f"{flag} {value}" for flag, value in (
+        ("--corpus", corpus), ("--labs", " ".join(labs or [])), ("--weights", weights)) if value]
+    command += [f"--pairs-per-lab {pairs_per_lab}", f"--panel-worms-per-lab {panel_worms_per_lab}",
+                f"--synthetic-pairs {synthetic_pairs}", *([] if with_cpd else ["--no-cpd"])]
+    command = " ".join(command + ([f"--out {out}"] if out is not None else []))
     identifier = Identifier.load(weights)
     worms = load_corpus(corpus)
     present = {w.lab for w in worms}
