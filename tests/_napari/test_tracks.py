@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -234,6 +236,13 @@ def test_a_track_reference_with_a_repeated_name_says_so_in_napari(track_widget, 
     widget.set_reference(ref)
     before = len(notification_manager.records)
     assert widget.run() is not None, widget.last_error
+    from qtpy.QtWidgets import QApplication
+
+    deadline = time.monotonic() + 5.0  # the warning reaches napari through the Qt event loop
+    while time.monotonic() < deadline and not any(
+            labels[named[0]] in str(r.message) for r in notification_manager.records[before:]):
+        QApplication.processEvents()
+        time.sleep(0.01)
     messages = [str(r.message) for r in notification_manager.records[before:]]
     assert any(labels[named[0]] in m for m in messages), messages
 
