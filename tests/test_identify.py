@@ -203,8 +203,10 @@ def test_the_doubt_about_the_handedness_mixes_in_the_other_answer(worm, other_wo
     plain.with_settings(chirality={"same": "mirrored", "mirrored": "same"}[chosen]).label(test, [other_worm], atlas=atlas)
     doubtful.with_settings(chirality=chosen).label(test, [other_worm], atlas=atlas)
     a_probs, b_probs, other_probs, told_probs = answers
-    np.testing.assert_allclose(b_probs, 0.7 * a_probs + 0.3 * other_probs, rtol=1e-4, atol=1e-7)
-    np.testing.assert_allclose(told_probs, a_probs, rtol=1e-4, atol=1e-7)
+    # On a GPU, the same pass in another call's batch differs by up to ~3e-4 relative (H100, session 32).
+    rtol = 1e-4 if plain.device == "cpu" else 1e-3
+    np.testing.assert_allclose(b_probs, 0.7 * a_probs + 0.3 * other_probs, rtol=rtol, atol=1e-7)
+    np.testing.assert_allclose(told_probs, a_probs, rtol=rtol, atol=1e-7)
     assert np.abs(b_probs - a_probs).max() > 0.05
 
 

@@ -70,8 +70,12 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         has_display = bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
         if headless or has_display:
-            from ._napari.demo_flow import run_demo
-
+            try:
+                from ._napari.demo_flow import run_demo
+            except ImportError as exc:  # the core installed without the [napari] extra
+                missing = exc.name.split(".")[0] if exc.name else exc
+                raise FdlcError(f"the napari part of the demo needs napari and Qt ({missing} is missing): "
+                                "pip install 'napari-fdlc[napari]'") from None
             paths = run_demo(OUT_DIR, headless=headless)
             if paths:
                 print(f"\nWrote {paths[0]} and {paths[1]}")

@@ -310,6 +310,9 @@ def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, a
     raw = df[column].astype(str).str.strip()
     values = pd.to_numeric(raw.where(raw != "", "nan"), errors="coerce").to_numpy(dtype=np.float64, copy=True)
     bad = ~np.isfinite(values)
+    # pandas 2's parser is off by one unit in the last place on about a third of the numbers;
+    # numpy's (Python's) is exact, so a position or colour written back is the one read.
+    values[~bad] = raw.to_numpy(dtype=str)[~bad].astype(np.float64)
     if allow_empty:  # no reading: an empty cell, or NaN / NA as MATLAB (NeuroPAL_ID) and R write it
         bad &= ~raw.str.lower().isin(("", "nan", "na")).to_numpy()
     if bad.any():
