@@ -21,6 +21,17 @@ def test_round_trip_keeps_everything(tmp_path, worm):
     del worm.extra["my_note"]
 
 
+def test_columns_without_name_or_value_are_not_written_back(tmp_path):
+    """Excel's trailing commas on every line (',,' after the last column) make columns with no
+    name and no value: they were kept and written back as 'Unnamed: 4' and 'Unnamed: 5'. A
+    nameless column that holds values is kept."""
+    back = read_table(write(tmp_path / "a.csv", "x_um,y_um,z_um,label,,,\n1,2,3,AVAL,,,7\n4,5,6,AVAR,,,\n"))
+    write_table(back, tmp_path / "b.csv")
+    header = (tmp_path / "b.csv").read_text().splitlines()[0].split(",")
+    assert header[:4] == ["x_um", "y_um", "z_um", "label"] and "Unnamed: 4" not in header and "Unnamed: 5" not in header, header
+    assert list(back.extra["Unnamed: 6"]) == ["7", ""]
+
+
 def test_numbers_are_read_to_the_last_digit(tmp_path):
     """Positions and colours written with every digit come back bit for bit. With pandas 2 (which
     the package allows), its parser left a third of such numbers one unit in the last place off."""

@@ -277,6 +277,10 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
         raise TableError(f"{name}: the file has no header row") from None
     except pd.errors.ParserError as exc:
         raise TableError(f"{name}: not a valid CSV file ({str(exc).splitlines()[0]})") from None
+    # A column with neither a name nor a value (Excel's trailing ',,' on every line) carries nothing:
+    # kept, it would be written back under pandas' name for it, 'Unnamed: 3'
+    nameless = [c for c in df.columns if str(c).startswith("Unnamed: ") and not df[c].fillna("").str.strip().ne("").any()]
+    df = df.drop(columns=nameless)
     # A row of blank cells (',,,,' as Excel leaves below a table) is no neuron: dropped, as a blank line is
     blank = (df.isna() | df.apply(lambda column: column.str.strip().eq(""))).all(axis=1)
     if blank.any():
