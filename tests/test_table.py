@@ -64,6 +64,7 @@ def test_names_unsure_and_duplicates(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "RIAL" in err[0]
     assert parse_name("I1-alt") == ("I1-alt", 1.0)
+    assert parse_name("RMDDR??") == parse_name("RMDDR ?") == ("RMDDR", 0.5)  # '??' was the name 'RMDDR?', sure
 
 
 @pytest.mark.parametrize(

@@ -199,10 +199,10 @@ def _clean(name) -> str:
 
 
 def parse_name(raw) -> tuple[str, float]:
-    """'AVAL' -> ('AVAL', 1); 'AVAL?' -> ('AVAL', 0.5); '?' or '' -> ('', 0)."""
+    """'AVAL' -> ('AVAL', 1); 'AVAL?' or 'AVAL??' -> ('AVAL', 0.5); '?' or '' -> ('', 0)."""
     s = _clean(raw)
     if s.endswith("?"):
-        s = s[:-1].strip()
+        s = s.rstrip("?").strip()
         return (s, UNSURE_CONF) if s else ("", 0.0)
     return (s, 1.0) if s else ("", 0.0)
 
