@@ -88,6 +88,10 @@ def test_status_values(session):
     assert (session.user_id[2], session.user_conf[2], session.status[2]) == ("SMDVL", 0.5, "unsure")
     session.clear(2)
     assert (session.user_id[2], np.isnan(session.user_conf[2]), session.status[2]) == ("", True, "auto")
+    session.assign(2, "smdvl?")  # typed in lower case: the vocabulary's spelling (it was a name of its own)
+    assert (session.user_id[2], session.status[2]) == ("SMDVL", "unsure")
+    session.assign(2, "avbl")  # no such name in the vocabulary: as typed
+    assert session.user_id[2] == "avbl"
 
 
 def test_pick_candidate_and_errors(session):

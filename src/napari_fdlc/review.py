@@ -674,7 +674,17 @@ class ReviewSession:
         clean, conf = parse_name(name)
         if not clean:
             return self.clear(i)
+        clean = self._spelled_as_known(clean)
         return self._decide(i, clean, conf, f"name neuron {i} {clean}{'?' if conf == UNSURE_CONF else ''}")
+
+    def _spelled_as_known(self, name: str) -> str:
+        """A typed name as the vocabulary writes it ('aval' -> 'AVAL'): typed in another case it
+        was a name of its own, which no template or atlas knows. Kept as typed where it is known,
+        unknown, or two known names differ only in case."""
+        if name in self.vocabulary:
+            return name
+        same = [n for n in self.vocabulary if n.lower() == name.lower()]
+        return same[0] if len(same) == 1 else name
 
     def pick_candidate(self, i: int, k: int) -> bool:
         """Give neuron ``i`` its k-th candidate (k = 1, 2, 3)."""
