@@ -244,3 +244,15 @@ def test_label_refuses_a_template_of_several_time_points_in_one_line(tmp_path, w
     write_table(worm, test)
     assert run("label", test, "--template", two, "--out", tmp_path / "out.csv") == 2
     assert "2 time points" in one_line(capsys)
+
+
+def test_a_line_break_or_escape_inside_a_cell_keeps_the_error_one_line(tmp_path, capsys):
+    """A quoted cell holding a line break, or a terminal escape, quoted back in the message: the
+    error was printed over two lines (and an escape sequence acted on the terminal). Now shown
+    escaped, on one line."""
+    table = tmp_path / "worm.csv"
+    table.write_text('x_um,y_um,z_um\n"1\n2",0,0\n\x1b[2J,1,1\n')
+    assert run("label", table, "--out", tmp_path / "o.csv") == 2
+    line = one_line(capsys)
+    assert "\\n" in line and "\x1b" not in line, line
+    assert not (tmp_path / "o.csv").exists()

@@ -10,7 +10,7 @@ import argparse
 import sys
 import time
 
-from .errors import FdlcError, check_output, warn
+from .errors import FdlcError, check_output, one_line, warn
 
 _LONG_VOXELS = 20_000_000  # above this, print progress lines (a few seconds of work)
 
@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
         times, tables, length = segment_recording(args, args.stack, "fdlc segment")
         write_table(tables[0] if length == 1 else join_by_time(tables, times), args.out)
     except FdlcError as exc:
-        print(f"fdlc: error: {exc}", file=sys.stderr)
+        print(f"fdlc: error: {one_line(exc)}", file=sys.stderr)
         return 2
     if not args.quiet:
         found = f"{len(tables[0])} nuclei" if length == 1 else \

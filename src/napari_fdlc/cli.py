@@ -11,7 +11,7 @@ import os
 import sys
 from pathlib import Path
 
-from .errors import FdlcError, check_output
+from .errors import FdlcError, check_output, one_line
 from .geometry import CHIRALITIES
 
 METHODS = ("fdlc", "cpd")
@@ -284,11 +284,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.run(args) or 0)
     except FdlcError as exc:
-        print(f"fdlc: error: {exc}", file=sys.stderr)
+        print(f"fdlc: error: {one_line(exc)}", file=sys.stderr)
         return 2
     except OSError as exc:  # a file the system would not read or write (inputs are checked before)
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"fdlc: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        print(f"fdlc: error: {one_line(f'{where}{exc.strerror or exc}')}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("fdlc: interrupted", file=sys.stderr)

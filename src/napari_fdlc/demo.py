@@ -20,7 +20,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
-from .errors import FdlcError
+from .errors import FdlcError, one_line
 
 OUT_DIR = Path("demo_output")
 
@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\nNo display and no Xvfb: skipped the napari part (install xvfb or run with a display).")
         return 0
     except FdlcError as exc:
-        print(f"fdlc: error: {exc}", file=sys.stderr)
+        print(f"fdlc: error: {one_line(exc)}", file=sys.stderr)
         return 2
 
 

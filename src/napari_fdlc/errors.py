@@ -28,13 +28,20 @@ class ModelError(FdlcError):
     """Weights or a model configuration that cannot be used."""
 
 
+def one_line(message: object) -> str:
+    """``message`` as one printable line: a control character that came from the input (a line
+    break inside a quoted cell, a terminal escape) is shown escaped, as Python writes it, instead
+    of breaking the line or acting on the terminal."""
+    return "".join(ch if ch.isprintable() else repr(ch)[1:-1] for ch in str(message))
+
+
 _warning_handler: ContextVar[Callable[[str], None] | None] = ContextVar("fdlc_warning_handler", default=None)
 
 
 def warn(message: str) -> None:
     """Print one warning line on stderr (the contract asks for one line, no traceback), and
     hand it to the handler of an enclosing :func:`warnings_to` (a napari notification)."""
-    print(f"fdlc: warning: {message}", file=sys.stderr, flush=True)
+    print(f"fdlc: warning: {one_line(message)}", file=sys.stderr, flush=True)
     handler = _warning_handler.get()
     if handler is not None:
         handler(message)
