@@ -4,7 +4,10 @@ came from a review of the command line (session 26); each says what used to happ
 
 from __future__ import annotations
 
+import os
 import signal
+import stat
+import threading
 import warnings
 
 import numpy as np
@@ -256,3 +259,26 @@ def test_a_line_break_or_escape_inside_a_cell_keeps_the_error_one_line(tmp_path,
     line = one_line(capsys)
     assert "\\n" in line and "\x1b" not in line, line
     assert not (tmp_path / "o.csv").exists()
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
+def test_out_to_a_pipe_or_through_a_link_writes_the_file_it_names(tmp_path, small_stack):
+    """--out a named pipe (as /dev/null or /dev/stdout): the table was written to a temporary file
+    and renamed over the pipe, which became a regular file (as root, /dev/null did for the whole
+    machine). It now goes through the pipe. --out a link: the link was replaced by a regular file;
+    now the file it names is written and the link stays."""
+    stack = tmp_path / "worm.ome.tif"
+    write_tiff(stack, small_stack)
+    fifo = tmp_path / "neurons.csv"
+    os.mkfifo(fifo)
+    received = []
+    reader = threading.Thread(target=lambda: received.append(fifo.read_bytes()), daemon=True)
+    reader.start()
+    assert run("segment", stack, "--quiet", "--out", fifo) == 0
+    reader.join(10)
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and received and received[0].startswith(b"x_um")
+    target, link = tmp_path / "real.csv", tmp_path / "link.csv"
+    target.write_text("old")
+    link.symlink_to(target)
+    assert run("segment", stack, "--quiet", "--out", link) == 0
+    assert link.is_symlink() and target.read_text().startswith("x_um")

@@ -8,6 +8,7 @@ widgets show it as a notification.
 from __future__ import annotations
 
 import os
+import stat
 import sys
 import tempfile
 from contextlib import contextmanager
@@ -61,12 +62,19 @@ def warnings_to(handler: Callable[[str], None]):
 def check_output(out: str | os.PathLike, inputs=(), create_folder: bool = False) -> Path:
     """The output file ``out``, refused before any work when it cannot be a file written there:
     an existing folder (or a path ending in a separator), a parent that is a file or (unless
-    ``create_folder``) missing, a folder without write permission, or one of the ``inputs``
-    (files read; a folder given as input stands for the files in it)."""
+    ``create_folder``) missing, a folder without write permission, a device other than a
+    stream, or one of the ``inputs`` (files read; a folder given as input stands for the files
+    in it). A stream (/dev/null, /dev/stdout, a named pipe) is written through; a link stands
+    for the file it names."""
     text = str(out)
     path = Path(out)
     if not text or path.is_dir() or text.endswith(("/", os.sep)):
         raise FdlcError(f"{text or '--out'}: is a folder; --out must be a file")
+    if _is_stream(path):  # /dev/null, /dev/stdout, a named pipe: written through (atomic_write)
+        return path
+    if path.exists() and not path.is_file():
+        raise FdlcError(f"{out}: is a device, not a file; --out must be a file")
+    path = _followed(path)
     existing = next(p for p in path.parents if p.exists() or p == Path(p.anchor or "."))
     if not existing.is_dir():
         raise FdlcError(f"{out}: {existing} is a file, not a folder")
@@ -89,6 +97,20 @@ def _replaces_input(path: str | os.PathLike, inputs) -> bool:
     return False
 
 
+def _is_stream(path: Path) -> bool:
+    """An existing device or named pipe (not a file, not a folder)."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return False
+    return stat.S_ISCHR(mode) or stat.S_ISFIFO(mode)
+
+
+def _followed(path: Path) -> Path:
+    """A link's target (the file it names, which is what gets written, not the link replaced)."""
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
+
+
 @contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs):
     """Open a temporary file beside ``path``; rename it over ``path`` only if the block succeeds.
@@ -97,6 +119,13 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs):
     one step.
     """
     path = Path(path)
+    if _is_stream(path):
+        # Renaming a file over a device or a pipe would replace it (as root, /dev/null for the
+        # whole machine): written through instead; a stream cannot be half-written in place anyway.
+        with open(path, mode, **kwargs) as handle:
+            yield handle
+        return
+    path = _followed(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)

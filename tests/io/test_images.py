@@ -559,3 +559,80 @@ def test_axes_given_for_an_nd2_or_nwb_file_are_refused(tmp_path):
     with pytest.raises(images.ImageError) as exc:
         read_stack(path, axes="CZYX")
     one_line_error(exc, "--axes", "ND2")
+
+
+def test_imagej_axes_with_units_of_their_own(tmp_path):
+    """ImageJ writes `zunit=` / `yunit=` where an axis has its own unit: a 1500 nm z step under
+    `unit=micron` was read as 1500 µm. And a stack calibrated to 1 µm pixels (resolution 1 with a
+    length unit) was refused as uncalibrated: ImageJ marks that by its unit, not the resolution."""
+    path = tmp_path / "zunit.tif"
+    tifffile.imwrite(path, _zcyx(), imagej=True, resolution=(4.0, 4.0),
+                     metadata={"axes": "ZCYX", "unit": "micron", "zunit": "nm", "spacing": 1500})
+    assert read_stack(path).voxel_size_zyx == pytest.approx((1.5, 0.25, 0.25))
+    tifffile.imwrite(path, _zcyx(), imagej=True, resolution=(1.0, 1.0), metadata={"axes": "ZCYX", "unit": "micron", "spacing": 2.0})
+    assert read_stack(path).voxel_size_zyx == pytest.approx((2.0, 1.0, 1.0))
+    tifffile.imwrite(path, _zcyx(), imagej=True, resolution=(1.0, 1.0), metadata={"axes": "ZCYX", "unit": "pixel", "spacing": 2.0})
+    with pytest.raises(images.ImageError) as exc:
+        read_stack(path)
+    one_line_error(exc, "voxel size")
+
+
+def test_a_multi_position_ome_tiff_is_refused_not_read_in_part(tmp_path):
+    """An OME-TIFF of two Images (stage positions, as bfconvert writes them) was read as its
+    first, the second worm dropped without a word; refused as a multi-position ND2 is."""
+    path = tmp_path / "positions.ome.tif"
+    data = _zcyx().transpose(1, 0, 2, 3)
+    with tifffile.TiffWriter(path, ome=True) as tw:
+        for name in ("pos1", "pos2"):
+            tw.write(data, metadata={"axes": "CZYX", "Name": name, "PhysicalSizeX": 0.25, "PhysicalSizeY": 0.25, "PhysicalSizeZ": 1.5})
+    with pytest.raises(images.ImageError) as exc:
+        read_stack(path)
+    one_line_error(exc, "2 images", "export each position")
+
+
+def test_ome_channel_names_that_look_like_numbers_stay_text(tmp_path):
+    """Channels named by laser line ('488') came back as numbers (tifffile's xml2dict converts
+    attribute values; 'NaN' became nan), and write_nwb then died with a TypeError traceback."""
+    path = tmp_path / "lasers.ome.tif"
+    names = ["405", "488", "NaN", "640"]
+    data = np.ones((4, 4, 16, 16), np.uint16)
+    tifffile.imwrite(path, data, ome=True, metadata={"axes": "CZYX", "PhysicalSizeX": 0.25, "PhysicalSizeY": 0.25,
+                                                     "PhysicalSizeZ": 1.5, "Channel": {"Name": names}})
+    got = read_stack(path, channels=["R", "G", "B", "W"])
+    assert got.channel_names == names
+    write_nwb(tmp_path / "lasers.nwb", got)
+
+
+def test_nwb_one_based_rgbw_beside_a_gcamp_channel(tmp_path, stack):
+    """With a fifth channel both readings of RGBW_channels [1, 2, 3, 4] fit; the 0-based one was
+    taken (GCaMP used as W, every colour shifted) although the channel names say otherwise. Now
+    the reading the names agree with."""
+    data = np.concatenate([stack.data, stack.data[:1]])
+    five = Stack(data, stack.voxel_size_zyx, ["R", "G", "B", "W", "GFP"], channel_names=NAMES + ["GCaMP6s"])
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, five)
+    with h5py.File(path, "a") as f:
+        f["acquisition/NeuroPALImageRaw/RGBW_channels"][...] = [1, 2, 3, 4]
+    assert read_stack(path).channel_roles == ["R", "G", "B", "W", "GFP"]
+
+
+def test_nwb_grid_spacing_in_pixels_asks_for_the_voxel_size(tmp_path, stack):
+    """A grid_spacing unit that is no length ('pixels') was taken as µm: 1 µm voxels, silently."""
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, stack)
+    with h5py.File(path, "a") as f:
+        spacing = f["general/optophysiology/NeuroPALImVol/grid_spacing"]
+        spacing[...] = [1.0, 1.0, 1.0]
+        spacing.attrs["unit"] = "pixels"
+    with pytest.raises(images.ImageError) as exc:
+        read_stack(path)
+    one_line_error(exc, "voxel size")
+
+
+def test_nd2_with_uncalibrated_pixels_and_a_z_step_asks_for_the_voxel_size(tmp_path):
+    """nd2 reports 1 µm for an uncalibrated axis; only all three at 1 were taken as unknown, so
+    x = y = 1 with a 0.5 µm z loop read as (0.5, 1, 1) µm, silently."""
+    fake = FakeND2(_zcyx(), {"Z": 5, "C": 2, "Y": 16, "X": 16}, voxel=(1.0, 1.0, 0.5), names=("TagRFP-T", "mNeptune2.5"))
+    with pytest.raises(images.ImageError) as exc:
+        read_nd2(tmp_path / "w.nd2", opener=lambda p: fake)
+    one_line_error(exc, "voxel size")

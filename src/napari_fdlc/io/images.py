@@ -428,6 +428,9 @@ def read_tiff(
             raise ImageError(f"{source}: the TIFF is damaged or truncated ({problems[0]}); re-export it")
         if not series_list:
             raise ImageError(f"{source}: the TIFF is damaged or holds no image; re-export it")
+        if tif.is_ome and len(series_list) > 1:  # read as its first alone, the others would be lost silently
+            raise ImageError(f"{source}: an OME-TIFF of {len(series_list)} images (stage positions or fields); fdlc "
+                             "reads one volume per file: export each position to its own file")
         series = series_list[0]
         file_axes = series.axes
         shape = tuple(series.shape)
@@ -567,6 +570,23 @@ def _to_um(value, unit) -> float | None:
     return None if factor is None else value * factor
 
 
+def _ome_channel_names(xml: str) -> list[str | None] | None:
+    """The first image's channel names (Name, else Fluor) as the file writes them: xml2dict would
+    turn a name like '488' or 'NaN' into a number."""
+    from xml.etree import ElementTree
+
+    def children(element, tag):
+        return [e for e in element if e.tag.rsplit("}", 1)[-1] == tag]
+
+    try:
+        image = children(ElementTree.fromstring(xml), "Image")[0]
+        channels = children(children(image, "Pixels")[0], "Channel")
+    except (ElementTree.ParseError, IndexError):
+        return None
+    names = [c.get("Name") or c.get("Fluor") for c in channels]
+    return names if any(names) else None
+
+
 def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None]:
     """Voxel size (Z, Y, X µm, None where unknown) and channel names from OME or ImageJ metadata."""
     import tifffile
@@ -583,11 +603,7 @@ def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None]:
                 _to_um(pixels.get(f"PhysicalSize{a}"), pixels.get(f"PhysicalSize{a}Unit")) if f"PhysicalSize{a}" in pixels else None
                 for a in "ZYX"
             ]
-            chans = pixels.get("Channel", [])
-            chans = chans if isinstance(chans, list) else [chans]
-            names = [c.get("Name") or c.get("Fluor") if isinstance(c, dict) else None for c in chans] or None
-            if names is not None and not any(names):
-                names = None
+            names = _ome_channel_names(tif.ome_metadata)
             return voxel, names
     if tif.is_imagej and tif.imagej_metadata is not None:
         meta = tif.imagej_metadata
@@ -598,12 +614,14 @@ def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None]:
             xres, yres = page.get_resolution()
         except Exception:
             pass
-        known_unit = unit is not None and _to_um(1.0, unit) is not None
-        x = _to_um(1.0 / xres, unit) if known_unit and xres and xres != 1 else None
-        y = _to_um(1.0 / yres, unit) if known_unit and yres and yres != 1 else None
+        # ImageJ marks an uncalibrated stack by its unit ('pixel', or none), not by a resolution
+        # of 1, and writes yunit / zunit where an axis has a unit of its own.
+        y_unit, z_unit = meta.get("yunit", unit), meta.get("zunit", unit)
+        x = _to_um(1.0 / xres, unit) if unit is not None and xres else None
+        y = _to_um(1.0 / yres, y_unit) if y_unit is not None and yres else None
         # ImageJ leaves spacing out when the z step is 1 (its unit) and reads it back as 1.
         spacing = meta.get("spacing", 1.0 if int(meta.get("slices", 1) or 1) > 1 else None)
-        z = _to_um(spacing, unit) if known_unit and spacing else None
+        z = _to_um(spacing, z_unit) if z_unit is not None and spacing else None
         names = None
         labels = meta.get("Labels")
         n_c = int(meta.get("channels", 1) or 1)
@@ -648,9 +666,9 @@ def read_nd2(
         try:
             vs = f.voxel_size()
             voxel = [float(vs.z), float(vs.y), float(vs.x)]
-            # nd2 reports 1.0 for an uncalibrated axis; a real NeuroPAL z step is never exactly 1 µm
-            # together with 1 µm pixels, so treat all-ones as "unknown".
-            if voxel == [1.0, 1.0, 1.0]:
+            # nd2 reports 1.0 for an uncalibrated axis; NeuroPAL pixels are 0.1-0.4 µm, never
+            # exactly 1 in x and y, so those are "unknown" (the z loop may still have its step).
+            if voxel[1:] == [1.0, 1.0]:
                 voxel = None
         except Exception:
             voxel = None

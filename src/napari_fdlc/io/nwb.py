@@ -143,7 +143,9 @@ def _grid_spacing_um(volume) -> list[float | None] | None:
     if unit and str(unit).lower() in ("m", "meter", "meters") and gs.max() < 1e-3:
         factor = 1e6
     elif unit and str(unit).lower() not in ("m", "meter", "meters"):
-        factor = _to_um(1.0, unit) or 1.0
+        factor = _to_um(1.0, unit)
+        if factor is None:  # 'pixels', or a unit we cannot convert: unknown, asked for (not taken as µm)
+            return None
     else:
         factor = 1.0
     x, y, z = (float(v) * factor for v in gs)
@@ -187,7 +189,9 @@ def _text(value) -> str:
     return "" if value is None else str(value)
 
 
-def _rgbw(image, n_channels: int) -> list[str | None] | None:
+def _rgbw(image, n_channels: int, names: list[str] | None = None) -> list[str | None] | None:
+    """Channel roles from RGBW_channels. 1-based (MATLAB) when an index reaches the channel count;
+    where both readings fit (a fifth channel, GCaMP), the one the channel names agree with."""
     raw = getattr(image, "RGBW_channels", None)
     if raw is None:
         raw = _h5(image, "RGBW_channels")
@@ -196,8 +200,18 @@ def _rgbw(image, n_channels: int) -> list[str | None] | None:
     idx = np.asarray(raw[()] if hasattr(raw, "shape") and not isinstance(raw, np.ndarray) else raw).astype(int).ravel()
     if idx.size < 3 or idx.size > 4:
         return None
-    if idx.max() >= n_channels and idx.min() >= 1:  # 1-based indices from MATLAB writers
-        idx = idx - 1
+    readings = [_placed(idx, n_channels), _placed(idx - 1, n_channels) if idx.min() >= 1 else None]
+    if readings[0] is None or readings[1] is None:
+        return readings[0] or readings[1]
+    by_name = images.roles_from_names(names) if names and len(names) == n_channels else [None] * n_channels
+
+    def agreement(roles):
+        return sum(r is not None and r == n for r, n in zip(roles, by_name))
+
+    return max(readings, key=agreement)  # ties: 0-based, as pynwb writers store them
+
+
+def _placed(idx: np.ndarray, n_channels: int) -> list[str | None] | None:
     if idx.min() < 0 or idx.max() >= n_channels or len(set(idx.tolist())) != idx.size:
         return None
     roles: list[str | None] = [None] * n_channels
@@ -227,7 +241,7 @@ def read_nwb(
         voxel = _grid_spacing_um(volume)
         names = _volume_channel_names(volume, image)
         n_channels = shape[3] if len(shape) == 4 else 1
-        roles = _rgbw(image, n_channels)
+        roles = _rgbw(image, n_channels, names)
         nbytes = int(np.prod(shape)) * np.dtype(dset.dtype).itemsize
         try:
             if nbytes > images.LAZY_BYTES:
