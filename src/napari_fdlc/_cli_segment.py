@@ -10,7 +10,7 @@ import argparse
 import sys
 import time
 
-from .errors import FdlcError, check_output, one_line, warn
+from .errors import FdlcError, check_output, warn
 
 _LONG_VOXELS = 20_000_000  # above this, print progress lines (a few seconds of work)
 
@@ -98,13 +98,9 @@ def run(args: argparse.Namespace) -> int:
     from .table import write_table
     from .track import join_by_time
 
-    try:
-        check_output(args.out, [args.stack], create_folder=True)
-        times, tables, length = segment_recording(args, args.stack, "fdlc segment")
-        write_table(tables[0] if length == 1 else join_by_time(tables, times), args.out)
-    except FdlcError as exc:
-        print(f"fdlc: error: {one_line(exc)}", file=sys.stderr)
-        return 2
+    check_output(args.out, [args.stack], create_folder=True)
+    times, tables, length = segment_recording(args, args.stack, "fdlc segment")
+    write_table(tables[0] if length == 1 else join_by_time(tables, times), args.out)
     if not args.quiet:
         found = f"{len(tables[0])} nuclei" if length == 1 else \
             f"{sum(map(len, tables))} nuclei in {len(tables)} time points"
