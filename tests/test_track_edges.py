@@ -219,3 +219,51 @@ def test_a_repeated_name_in_a_long_labelled_sequence_is_one_warning(tmp_path, wo
     assert main(["track", str(src), "--method", "geometry", "--quiet", "--out", str(out)]) == 0
     repeated = [line for line in capsys.readouterr().err.splitlines() if "more than once" in line]
     assert len(repeated) <= 1, repeated
+
+
+# Session 32 (a helper review of fdlc track)
+
+
+@pytest.mark.parametrize("flag", ["--weights", "--tracking-weights"])
+def test_track_out_onto_its_own_model_is_refused(tmp_path, gentle, untrained_weights, capsys, flag):
+    """--out typed onto the model's own JSON: the tracks replaced it (the model no longer
+    loaded), as fdlc evaluate already refused. Now refused before any work."""
+    import shutil
+    from pathlib import Path
+
+    model = tmp_path / "m"
+    for suffix in (".safetensors", ".json"):
+        shutil.copy(Path(untrained_weights).with_suffix(suffix), model.with_suffix(suffix))
+    before = model.with_suffix(".json").read_bytes()
+    models = ["--weights", model] if flag == "--weights" else ["--weights", untrained_weights, "--tracking-weights", model]
+    seq = _sequence_csv(gentle[0], tmp_path / "seq.csv")
+    assert main([str(a) for a in ("track", seq, *models, "--quiet", "--out", model.with_suffix(".json"))]) == 2
+    assert "would replace an input" in capsys.readouterr().err
+    assert model.with_suffix(".json").read_bytes() == before
+
+
+def test_track_weights_of_four_colour_channels_are_one_line(tmp_path, gentle, untrained_weights, capsys):
+    """A model JSON with "colour_channels": 4 loaded, then died in its first pass with a
+    RuntimeError traceback (only R, G, B are fed). Now refused when loaded."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    model = tmp_path / "c4"
+    shutil.copy(Path(untrained_weights).with_suffix(".safetensors"), model.with_suffix(".safetensors"))
+    meta = json.loads(Path(untrained_weights).with_suffix(".json").read_text())
+    meta["config"]["colour_channels"] = 4
+    model.with_suffix(".json").write_text(json.dumps(meta))
+    seq = _sequence_csv(gentle[0], tmp_path / "seq.csv")
+    assert main([str(a) for a in ("track", seq, "--weights", model, "--quiet", "--out", tmp_path / "t.csv")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "colour_channels" in err[0], err
+    assert not (tmp_path / "t.csv").exists()
+
+
+@pytest.mark.parametrize("method", ["geometry", "cpd"])
+def test_baselines_refuse_a_second_reference(gentle, worm, method):
+    """track(references=[a, b], method=geometry|cpd) used a alone: b's names were lost, silently
+    (the CLI refused it already)."""
+    with pytest.raises(FdlcError, match="one reference"):
+        track(gentle[0], references=[NeuronTable(worm.xyz, worm.colours), worm], method=method)

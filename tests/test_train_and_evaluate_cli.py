@@ -502,8 +502,8 @@ def no_training(monkeypatch):
     monkeypatch.setattr("napari_fdlc.train.training_batches", sentinel)
 
 
-def _config(tmp_path, **overrides) -> Path:
-    path = tmp_path / "tiny.json"
+def _config(tmp_path, name="tiny.json", **overrides) -> Path:
+    path = tmp_path / name
     path.write_text(json.dumps({**TINY, **overrides}))
     return path
 
@@ -718,3 +718,65 @@ def test_handedness_of_three_named_neurons_says_too_few_names(tmp_path, capsys):
     assert run("handedness", path) != 0
     line = _one_line_error(capsys)
     assert "fewer than 6 named neurons in common" in line, line
+
+
+# --------------------------------------------------------------------------------------------
+# Session 32 (a helper review of fdlc train)
+
+
+
+@pytest.mark.parametrize("flags, overrides", [
+    ((), {"val_worms_per_lab": 0}),
+    (("--train-labs", "NP", "--val-labs", "EY"), {}),
+], ids=["no-held-out-worms", "only-the-held-out-lab-validated"])
+def test_train_without_validation_of_a_training_lab_is_refused(tmp_path, fake_corpus, capsys, flags, overrides):
+    """Nothing of a training lab to validate on: the first checkpoint was kept whatever followed
+    (every score 0), or it was chosen on the held-out lab's scores, and calibration picked
+    settings among NaN scores (colour switched off). Now refused before training."""
+    out = tmp_path / "out" / "model"
+    assert run("train", "--config", _config(tmp_path, **overrides), "--corpus", fake_corpus, *flags, "--out", out) == 2
+    assert "held-out worms of a training lab" in _one_line_error(capsys)
+    assert not out.with_suffix(".json").exists()
+
+
+def test_train_colour_channels_other_than_three_is_refused(tmp_path, fake_corpus, capsys):
+    """"colour_channels": 4 passed the checks; training ran until its first validation died with
+    a RuntimeError traceback (only R, G, B are fed)."""
+    config = _config(tmp_path, model={"layers": 1, "dim": 32, "colour_channels": 4})
+    assert _train(fake_corpus, config, tmp_path / "m") == 2
+    assert "colour_channels" in _one_line_error(capsys)
+
+
+def test_train_worker_error_is_one_line(tmp_path, write_corpus, capsys):
+    """With --workers, an error in a worker (here: no usable pair) came out as torch's wrapper:
+    "Caught FdlcError in DataLoader worker process 0" and the worker's whole traceback."""
+    small = NeuronTable(np.array([[1.0, 2, 3], [5, 6, 7], [9, 1, 2]]), labels=np.array(["AVAL", "AVAR", "AIYL"], object))
+    corpus = write_corpus(tmp_path / "corpus", {"NP": [small] * 3, "EY": [small] * 3})
+    assert _train(corpus, _config(tmp_path), tmp_path / "m", "--workers", "1") == 2
+    line = _one_line_error(capsys)
+    assert "no training example" in line and "Traceback" not in line, line[:300]
+
+
+@pytest.mark.parametrize("history", [[None], [{"step": 3, "mean_top1": None}], [{"step": "x", "mean_top1": 0.2}]],
+                         ids=["null-entry", "null-top1", "text-step"])
+def test_resume_from_a_checkpoint_with_a_damaged_history_is_one_line(tmp_path, fake_corpus, capsys, history):
+    """A checkpoint record whose history is damaged gave an AttributeError / TypeError traceback."""
+    import torch
+
+    from napari_fdlc.model import CorrespondenceModel, save_model
+
+    torch.manual_seed(0)
+    checkpoint = tmp_path / "ck" / "model"
+    save_model(CorrespondenceModel(TINY["model"]), checkpoint, {"best_step": 3, "history": history})
+    assert _train(fake_corpus, _config(tmp_path), checkpoint, "--steps", "6", "--resume") == 2
+    assert "not a readable checkpoint record" in _one_line_error(capsys)
+
+
+def test_train_out_onto_its_own_recipe_is_refused(tmp_path, fake_corpus, capsys):
+    """--config runs/exp1.json --out runs/exp1: the first save replaced the recipe with the
+    checkpoint's record. Now refused before training, the recipe kept."""
+    config = _config(tmp_path, name="exp1.json")
+    before = config.read_bytes()
+    assert _train(fake_corpus, config, tmp_path / "exp1") == 2
+    assert "would replace an input" in _one_line_error(capsys)
+    assert config.read_bytes() == before

@@ -58,13 +58,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .model import model_files
     from .table import read_volume, warn_implausible_scales, write_table
     from .track import TrackSettings, read_sequence, track
 
     settings = TrackSettings(search=args.search, placement=args.placement, refine_steps=args.refine_steps,
                              chunk=args.chunk, use_colour=not args.no_colour, follow_with=args.follow_with)
     settings.check()
-    out = check_output(args.out, [*args.inputs, *args.reference], create_folder=True)  # as fdlc segment
+    # As fdlc segment; the models are read too, never written.
+    models = [f for w in (args.weights, args.tracking_weights) if w for f in model_files(w)]
+    out = check_output(args.out, [*args.inputs, *args.reference, *models], create_folder=True)
     if args.threads is not None and args.threads < 1:
         raise FdlcError(f"--threads must be at least 1 (got {args.threads})")
     model_options = [name for name, given in (("--weights", args.weights), ("--tracking-weights", args.tracking_weights),

@@ -178,6 +178,8 @@ def _run_train(args) -> int:
     # weights a new run starts from.
     starts_from = [model_files(cfg.init_from)[0]] if cfg.init_from and not cfg.resume else []
     check_output(model_files(cfg.out)[0], inputs=starts_from, create_folder=True)
+    if args.config and not (cfg.resume or args.calibrate_only):  # a new run's record would replace its recipe
+        check_output(model_files(cfg.out)[1], inputs=[args.config], create_folder=True)
     if args.calibrate_only and cfg.task != "identify":
         raise FdlcError("--calibrate-only: a tracking model has no inference settings to fit (they stay at their defaults)")
     if args.calibrate_only:

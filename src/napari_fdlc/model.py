@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .colour import IDENTITY_CHANNELS
 from .errors import ModelError
 
 DEFAULT_CONFIG = {
@@ -57,6 +58,9 @@ def model_config(config) -> dict:
         value = full[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
             raise ModelError(f"model setting {key} must be a positive number (got {value!r})")
+    if full["colour_channels"] not in (0, len(IDENTITY_CHANNELS)):  # what inference and training feed
+        raise ModelError(f"model setting colour_channels must be 0 (positions only) or {len(IDENTITY_CHANNELS)} "
+                         f"({', '.join(IDENTITY_CHANNELS)}) (got {full['colour_channels']})")
     if full["dim"] % full["heads"]:
         raise ModelError(f"model setting dim ({full['dim']}) must be a multiple of heads ({full['heads']})")
     return full

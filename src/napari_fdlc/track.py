@@ -445,6 +445,8 @@ def track(
     if any(len(t) == 0 for t in tables):
         raise FdlcError("a reference volume has no neurons" if references else
                         "the first volume has no neurons: give a reference volume that has (--reference-t)")
+    if method != "fdlc" and len(tables) > 1:  # the baselines follow one volume: the others' names would be lost
+        raise FdlcError(f"method {method} takes one reference (got {len(tables)})")
     if method == "cpd":
         return _track_cpd(seq, tables, s, progress)
     if method == "geometry":

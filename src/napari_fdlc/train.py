@@ -462,10 +462,18 @@ def training_batches(worms: list[Worm], cfg: TrainConfig, atlas, rng, first_step
                 yield _batch(worms, cfg, atlas, rng, torch)
 
     # Workers need no torch threads of their own: they make examples with numpy.
-    yield from torch.utils.data.DataLoader(ExampleStream(), batch_size=None, num_workers=cfg.workers,
-                                           worker_init_fn=lambda _: torch.set_num_threads(1),
-                                           prefetch_factor=4, persistent_workers=True,
-                                           multiprocessing_context="fork")
+    loader = torch.utils.data.DataLoader(ExampleStream(), batch_size=None, num_workers=cfg.workers,
+                                         worker_init_fn=lambda _: torch.set_num_threads(1),
+                                         prefetch_factor=4, persistent_workers=True, multiprocessing_context="fork")
+    try:
+        yield from loader
+    except FdlcError as exc:
+        # torch re-raises a worker's error with the worker's whole traceback as its message, whose
+        # last line is "module.Error: message": said as without workers, in one line.
+        text = str(exc)
+        if "Original Traceback" not in text:
+            raise
+        raise type(exc)(text.rstrip().splitlines()[-1].split(": ", 1)[-1]) from None
 
 
 def split_worms(worms: list[Worm], cfg: TrainConfig, rng) -> tuple[list[Worm], dict[str, list[Worm]]]:
@@ -600,6 +608,9 @@ def _load_start(model, path: str, resume: bool, log) -> tuple[int, list, float]:
             history = list(meta.get("history", []))
             best_step = int(meta.get("best_step", 0))
             theirs = model_config(meta.get("config"))
+            best = max((float(h.get("mean_top1", -1.0)) for h in history if h.get("step") == best_step), default=-1.0)
+            # The run goes on from the checkpoint (its best step): later entries belong to steps undone.
+            history = [h for h in history if int(h.get("step", 0)) <= best_step]
         except (OSError, ValueError, TypeError, AttributeError, ModelError) as exc:
             raise ModelError(f"{config_path}: not a readable checkpoint record ({exc})") from None
         if len(fitting) != len(own) or len(state) != len(own) or theirs != model.config:
@@ -609,9 +620,7 @@ def _load_start(model, path: str, resume: bool, log) -> tuple[int, list, float]:
     log(f"started from {weights}: {len(fitting)}/{len(own)} tensors")
     if not resume:
         return 1, [], -1.0
-    best = max((float(h.get("mean_top1", -1.0)) for h in history if h.get("step") == best_step), default=-1.0)
-    # The run goes on from the checkpoint (its best step): later entries belong to steps undone.
-    return best_step + 1, [h for h in history if h.get("step", 0) <= best_step], best
+    return best_step + 1, history, best
 
 
 def _check_labs(cfg: TrainConfig, corpus_labs: set[str]) -> None:
@@ -623,6 +632,16 @@ def _check_labs(cfg: TrainConfig, corpus_labs: set[str]) -> None:
             raise FdlcError(f"{name}: no worms of lab(s) {', '.join(missing)} in the corpus (labs: {', '.join(sorted(corpus_labs))})")
     if not set(cfg.train_labs) & corpus_labs:
         raise FdlcError(f"no worms of the training labs {', '.join(cfg.train_labs)} in the corpus (labs: {', '.join(sorted(corpus_labs))})")
+
+
+def _need_own_validation(cfg: TrainConfig, own: dict[str, list]) -> None:
+    """Refused before any work: no validation of a training lab to choose the checkpoint on
+    and to calibrate with (a held-out lab is watched, never chosen on; scores of nothing
+    would keep the first checkpoint and pick settings among NaNs)."""
+    if not any(own.values()):
+        raise FdlcError(f"no held-out worms of a training lab ({', '.join(cfg.train_labs)}) to choose the checkpoint on "
+                        f"and calibrate with (val_worms_per_lab {cfg.val_worms_per_lab}, --val-labs "
+                        f"{', '.join(cfg.val_labs)}): hold out worms of a training lab and keep it in --val-labs")
 
 
 def train(cfg: TrainConfig, log=print) -> dict:
@@ -648,6 +667,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
     recordings = tracking_sequences(val_worms, cfg) if cfg.task == "track" else None
     atlas = build_atlas(train_worms) if cfg.panel_fraction > 0 else None
     own_pairs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
+    _need_own_validation(cfg, {lab: r for lab, r in recordings.items() if lab in cfg.train_labs}
+                         if recordings is not None else own_pairs)
     panel_tests = _panel_tests(worms, own_pairs, cfg.train_labs) if atlas is not None else {}
     trained_labs = [lab for lab in cfg.train_labs if any(w.lab == lab for w in train_worms)]  # those the corpus has
     log(f"training on {len(train_worms)} worms of {', '.join(trained_labs)}; validating on "
@@ -703,7 +724,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
             # (pairs position only and with colour, the panel with colour when it is trained):
             # a held-out lab is watched, never used to choose.
             first = next(iter(scores.values()))
-            own = [lab for lab in first if lab in cfg.train_labs] or list(first)
+            own = [lab for lab in first if lab in cfg.train_labs]
             # A lab without validation pairs (one worm) scores NaN: left out, not made the mean.
             values = [d[lab] for d in scores.values() for lab in own if lab in d and math.isfinite(d[lab])]
             mean = float(np.mean(values)) if values else 0.0
@@ -744,6 +765,7 @@ def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, log=pr
         val_pairs = held_out(corpus, cfg)[2]
     _, config_path = model_files(cfg.out)
     own_labs = {lab: p for lab, p in val_pairs.items() if lab in cfg.train_labs}
+    _need_own_validation(cfg, own_labs)
     doubt = round(mixed_handedness_rate([w for w in corpus if w.lab in cfg.train_labs]), 3)
     log(f"calibrate: template_chirality_doubt {doubt} "
         "(how often two worms of a training lab differ in handedness, by their names)")
