@@ -10,7 +10,7 @@ import argparse
 import sys
 import time
 
-from .errors import FdlcError, check_output, warn
+from .errors import FdlcError, check_output
 
 _LONG_VOXELS = 20_000_000  # above this, print progress lines (a few seconds of work)
 
@@ -57,7 +57,7 @@ def segment_recording(args: argparse.Namespace, path: str, prog: str, check=None
     Progress lines on stderr (unless ``args.quiet``) for a recording or a big stack.
     ``check(series)``, before any segmentation, may refuse what the recording cannot give."""
     from .io.images import read_series
-    from .segment import check_detection_options, segment_series, segment_stack
+    from .segment import check_detection_options, found_time_points, segment_series, segment_stack
 
     check_detection_options(args.diameter_um, args.threshold, names=("--diameter-um", "--threshold"))
     series = read_series(path, voxel_size=args.voxel_size, channels=args.channels, axes=args.axes)
@@ -84,13 +84,7 @@ def segment_recording(args: argparse.Namespace, path: str, prog: str, check=None
             tables = segment_series(series, progress=volumes_done, **options)
     except MemoryError:
         raise FdlcError(f"{path}: not enough memory to segment this stack") from None
-    empty = [t for t, table in enumerate(tables) if len(table) == 0]
-    if len(empty) == len(tables):
-        raise FdlcError(f"{path}: no nuclei found; check --voxel-size and --diameter-um, or lower --threshold")
-    if empty:
-        shown = ", ".join(map(str, empty[:5])) + (" …" if len(empty) > 5 else "")
-        warn(f"{path}: no nuclei found at {len(empty)} time point(s) ({shown}); they are left out")
-    found = [t for t, table in enumerate(tables) if len(table)]
+    found = found_time_points(tables, path, "check --voxel-size and --diameter-um, or lower --threshold")
     return found, [tables[t] for t in found], len(series)
 
 

@@ -47,7 +47,7 @@ import pandas as pd
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from .errors import warn
+from .errors import FdlcError, warn
 from .io.images import ImageError, Stack, StackSeries
 from .table import NeuronTable
 
@@ -536,6 +536,19 @@ def segment_series(
         if progress is not None:
             progress(t + 1, len(series))
     return tables
+
+
+def found_time_points(tables: list[NeuronTable], source: str, advice: str) -> list[int]:
+    """The time points of a segmented recording where nuclei were found (the others are left out
+    of tracking, with one warning); refused when there is none (``advice``: what to check)."""
+    found = [t for t, table in enumerate(tables) if len(table)]
+    if not found:
+        raise FdlcError(f"{source}: no nuclei found; {advice}")
+    empty = [t for t, table in enumerate(tables) if not len(table)]
+    if empty:
+        shown = ", ".join(map(str, empty[:5])) + (" …" if len(empty) > 5 else "")
+        warn(f"{source}: no nuclei found at {len(empty)} time point(s) ({shown}); they are left out")
+    return found
 
 
 def _warn_without_w(stack: Stack | StackSeries) -> None:

@@ -291,3 +291,147 @@ def _random_named_worm(n: int, seed: int) -> NeuronTable:
     rng = np.random.default_rng(seed)
     xyz = rng.normal(0, 1, (n, 3)) * [30, 8, 6] + [60, 30, 15]
     return NeuronTable(xyz, {c: rng.gamma(2.0, 100.0, n) for c in "RGB"}, np.array([f"N{i}" for i in range(n)], dtype=object))
+
+
+# Session 32 (a helper review of the Track widget); each says what used to happen.
+
+
+def _moving_csv(path, worm, frames=3):
+    from napari_fdlc.track import join_by_time
+
+    volumes = [NeuronTable(worm.xyz + 0.2 * k, worm.colours) for k in range(frames)]
+    write_table(join_by_time(volumes).drop(columns=["label"]), path)
+    return path
+
+
+def _open_recording(viewer, path, change=None):
+    from napari_fdlc._napari._io import read_stack_layers
+
+    for data, kwargs, kind in read_stack_layers(str(path)):
+        getattr(viewer, f"add_{kind}")(change(np.array(data)) if change else data, **kwargs)
+
+
+def _messages_since(before: int, wait: float = 2.0) -> list[str]:
+    from qtpy.QtWidgets import QApplication
+
+    deadline = time.monotonic() + wait
+    while time.monotonic() < deadline:
+        QApplication.processEvents()
+        time.sleep(0.01)
+    return [str(r.message) for r in notification_manager.records[before:]]
+
+
+def test_points_lie_on_the_image_frame_when_the_recording_has_a_time_scale(track_widget, recording):
+    """Image layers with a time scale (4 Hz volumes shown in seconds): the results were at scale 1
+    in t, so at the image's third frame the neurons of frames 0 and 1 showed."""
+    viewer, widget = track_widget
+    _open_recording(viewer, recording[0])
+    for layer in list(viewer.layers):
+        layer.scale = (0.25, *tuple(layer.scale)[1:])
+    _, points = widget.run()
+    assert widget.last_error is None, widget.last_error
+    viewer.dims.set_point(0, float(viewer.layers[0].data_to_world([2, 0, 0, 0])[0]))
+    shown = np.asarray(points._view_indices, dtype=int)
+    assert len(shown) and (points.data[shown, 0] == 2).all(), sorted(set(points.data[shown, 0].tolist()))
+
+
+def test_each_input_keeps_its_own_layers(track_widget, tmp_path):
+    """A, then B, then A again: A's first layers stayed beside 'wormA tracks [1]'. And two files of
+    one name in two folders: the second deleted the first's layers (inputs were told apart by
+    the layer name)."""
+    viewer, widget = track_widget
+    a = _moving_csv(tmp_path / "wormA.csv", _random_named_worm(30, 1))
+    b = _moving_csv(tmp_path / "wormB.csv", _random_named_worm(30, 2))
+    for path in (a, b, a):
+        widget.set_sequence(path)
+        assert widget.run() is not None, widget.last_error
+    assert sorted(layer.name for layer in viewer.layers) == ["wormA neurons", "wormA tracks", "wormB neurons", "wormB tracks"]
+    (tmp_path / "day2").mkdir()
+    widget.set_sequence(_moving_csv(tmp_path / "day2" / "wormA.csv", _random_named_worm(30, 3)))
+    assert widget.run() is not None, widget.last_error
+    assert len(viewer.layers) == 6, [layer.name for layer in viewer.layers]
+
+
+def test_two_recordings_of_one_file_name_are_both_offered(track_widget, recording, tmp_path):
+    """day1/worm.ome.tif and day2/worm.ome.tif open: one 'recording: worm' was offered (day 2's)."""
+    import shutil
+
+    viewer, widget = track_widget
+    for day in ("day1", "day2"):
+        (tmp_path / day).mkdir()
+        shutil.copy(recording[0], tmp_path / day / "worm.ome.tif")
+        _open_recording(viewer, tmp_path / day / "worm.ome.tif")
+    keys = {widget.source_combo.itemData(i) for i in range(widget.source_combo.count())} - {None}
+    assert len(keys) == 2, [widget.source_combo.itemText(i) for i in range(widget.source_combo.count())]
+
+
+def test_a_sequence_path_typed_in_the_field_is_what_is_tracked(track_widget, recording, tmp_path):
+    """With a recording open, a path typed into Sequence was ignored: the recording was tracked."""
+    from qtpy.QtTest import QTest
+
+    viewer, widget = track_widget
+    _open_recording(viewer, recording[0])
+    QTest.keyClicks(widget.sequence_edit, str(_moving_csv(tmp_path / "typed.csv", _random_named_worm(30, 1))))
+    assert widget.run() is not None, widget.last_error
+    assert "typed tracks" in [layer.name for layer in viewer.layers]
+
+
+def test_a_reference_that_tracks_nothing_shows_the_neurons_and_says_so(track_widget, tmp_path):
+    """A reference of 3 landmark neurons that tracked nothing: napari's add_tracks raised an
+    IndexError on the empty tracks (a traceback, no layer, no message)."""
+    viewer, widget = track_widget
+    worm = _random_named_worm(30, 1)
+    widget.set_sequence(_moving_csv(tmp_path / "seq.csv", worm))
+    ref = tmp_path / "three.csv"
+    write_table(NeuronTable(worm.xyz[:3], {c: v[:3] for c, v in worm.colours.items()},
+                            np.array(["AVAL", "AVAR", "RIML"], dtype=object)), ref)
+    widget.set_reference(ref)
+    before = len(notification_manager.records)
+    out = widget.run()
+    assert widget.last_error is None, widget.last_error
+    assert [type(layer).__name__ for layer in out] == ["Points"]  # nothing tracked with the test model
+    assert any("no neuron could be tracked" in m for m in _messages_since(before))
+
+
+def test_exported_track_points_keep_their_names(track_widget, tmp_path):
+    """The Track widget's points saved with the plugin's writer: the names went into a `name`
+    column the readers ignore, `label` empty; read back, every neuron was unnamed."""
+    from napari_fdlc.track import read_sequence
+
+    viewer, widget = track_widget
+    worm = _random_named_worm(30, 1)
+    widget.set_sequence(_moving_csv(tmp_path / "seq.csv", worm))
+    write_table(worm, tmp_path / "ref.csv")
+    widget.set_reference(tmp_path / "ref.csv")
+    _, points = widget.run()
+    names = list(points.features["name"])
+    assert sum(bool(n) for n in names) > 20
+    viewer.layers.selection = {points}
+    viewer.layers.save(str(tmp_path / "exported.csv"), selected=True, plugin="napari-fdlc")
+    again = read_sequence(str(tmp_path / "exported.csv"))
+    assert [str(n) for v in again.volumes for n in v.label_strings()] == names
+
+
+def test_a_time_point_without_nuclei_is_said_in_napari(track_widget, recording):
+    """A blank volume in a recording was left out without a word (the CLI warns)."""
+    def blank_second(data):
+        data[1] = np.median(data[0])
+        return data
+
+    viewer, widget = track_widget
+    _open_recording(viewer, recording[0], change=blank_second)
+    before = len(notification_manager.records)
+    _, points = widget.run()
+    assert widget.last_error is None, widget.last_error
+    assert set(np.unique(points.data[:, 0])) == {0, 2}
+    assert any("no nuclei found at 1 time point" in m for m in _messages_since(before))
+
+
+def test_a_refused_second_run_does_not_outlive_the_job(track_widget, tmp_path):
+    """run() while a job runs is refused; the refusal became the running job's last_error."""
+    viewer, widget = track_widget
+    widget.set_sequence(_moving_csv(tmp_path / "s.csv", _random_named_worm(30, 1)))
+    widget.run(wait=False)
+    assert widget.run() is None
+    assert widget.wait(timeout=120)
+    assert len(viewer.layers) == 2 and widget.last_error is None, widget.last_error

@@ -226,6 +226,8 @@ def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     data = data[:, -3:]
     feats = pd.DataFrame(feats) if feats is not None else pd.DataFrame(index=range(len(df)))
     feats = feats.reset_index(drop=True)
+    if "label" not in feats.columns and "name" in feats.columns:  # the Track widget's points name their neurons so
+        feats = feats.rename(columns={"name": "label"})
     for c in [c for c in COLOUR_CHANNELS if c in feats.columns] + ["label"]:
         df[c] = feats[c].to_numpy() if c in feats.columns else ""
     for c in feats.columns:

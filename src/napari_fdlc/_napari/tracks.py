@@ -69,11 +69,14 @@ class _Signals(QObject):
     idle = Signal()  # the job has ended (emitted on the GUI thread)
 
 
-def track_layers(result, sequence, name: str = "sequence", frames: list[int] | None = None) -> list[tuple]:
+def track_layers(result, sequence, name: str = "sequence", frames: list[int] | None = None,
+                 time_axis: tuple[float, float] = (1.0, 0.0)) -> list[tuple]:
     """napari layer data tuples ``(data, kwargs, type)`` for a :class:`TrackResult`: Tracks of
-    the tracked neurons and Points of all neurons, time first, then z, y, x in µm. Time is
-    ``frames`` (a recording's time points, a table sequence's frame numbers: :func:`frames_of`)
-    or else each volume's index in ``sequence``."""
+    the tracked neurons (none when no neuron is tracked: napari cannot hold empty tracks) and
+    Points of all neurons, time first, then z, y, x in µm. Time is ``frames`` (a recording's
+    time points, a table sequence's frame numbers: :func:`frames_of`) or else each volume's
+    index in ``sequence``, shown at ``time_axis`` (scale, translate: the recording's own, so
+    that each frame lies over its image)."""
     frames = list(range(len(sequence))) if frames is None else frames
     rows, points, feats = [], [], {"t": [], "track_id": [], "track_conf": [], "name": []}
     for k, (vol, tid, conf) in enumerate(zip(sequence.volumes, result.track_id, result.confidence)):
@@ -94,15 +97,16 @@ def track_layers(result, sequence, name: str = "sequence", frames: list[int] | N
     text = [n if n else (str(i) if i >= 0 else "") for n, i in zip(feats["name"], ids)]
     colours = _id_colours(ids)
     meta = {"fdlc": {"tracks": True, "times": list(sequence.times), "names": track_names if labelled else {}}}
+    placed = {"scale": (time_axis[0], 1.0, 1.0, 1.0), "translate": (time_axis[1], 0.0, 0.0, 0.0)}
     tracks = (data, {"name": f"{name} tracks", "tail_length": 10, "blending": "translucent",
-                     "axis_labels": ("t", "z", "y", "x"), "metadata": meta}, "tracks")
+                     "axis_labels": ("t", "z", "y", "x"), "metadata": meta, **placed}, "tracks")
     pts = (np.vstack(points), {
         "name": f"{name} neurons", "features": feats, "size": 3.0, "face_color": colours,
         "border_color": "white", "border_width": 0.05, "out_of_slice_display": False,
         "text": {"string": text, "size": 8, "color": "white", "anchor": "upper_left"},
-        "axis_labels": ("t", "z", "y", "x"), "metadata": meta,
+        "axis_labels": ("t", "z", "y", "x"), "metadata": meta, **placed,
     }, "points")
-    return [tracks, pts]
+    return [tracks, pts] if len(data) else [pts]
 
 
 MAX_FRAME = 100_000  # whole-number t beyond this are timestamps, not frame numbers
@@ -142,6 +146,7 @@ class TrackWidget(QWidget):
         self.result = None
         self.sequence = None
         self.layers: list = []
+        self._shown: dict[str, list] = {}  # each input's layers (its image key, or its sequence file)
         self._worker = None
         self._busy = False
         self._signals = _Signals()
@@ -182,6 +187,8 @@ class TrackWidget(QWidget):
         form.addRow("Nucleus diameter", self.diameter_spin)
         self.sequence_edit = QLineEdit()
         self.sequence_edit.setPlaceholderText("CSV with a t column, or a folder of CSVs")
+        # A path typed or pasted is the input, as one chosen with the browse button.
+        self.sequence_edit.textEdited.connect(lambda text: text.strip() and self.source_combo.setCurrentText(SEQUENCE_FILE))
         form.addRow("Sequence", self._with_browse(self.sequence_edit, self._browse_sequence))
         self.reference_edit = QLineEdit()
         self.reference_edit.setPlaceholderText("optional; default: the first time point")
@@ -230,7 +237,10 @@ class TrackWidget(QWidget):
             if channels:
                 meta = (layers[0].metadata or {}).get(META_KEY) or {}
                 name = meta.get("stack_name") or (_short_name(key) if len(layers) > 1 else layers[0].name)
-                out[f"recording: {name}"] = (key, channels)
+                shown, n = f"recording: {name}", 2
+                while shown in out:  # two files of one name (day1/worm.tif, day2/worm.tif): both offered
+                    shown, n = f"recording: {name} [{n}]", n + 1
+                out[shown] = (key, channels)
         return out
 
     def _refresh_recordings(self, *_) -> None:
@@ -298,8 +308,8 @@ class TrackWidget(QWidget):
         default, for scripts) returns the two layers when done (None after an error)."""
         from napari.qt.threading import thread_worker
 
-        if self._busy:
-            self._error("a tracking job is still running")
+        if self._busy:  # said, but not made the state of the job that is running
+            notify_warning("a tracking job is still running")
             return None
         self.last_error = None
         sequence_path = self.sequence_edit.text().strip()
@@ -315,6 +325,10 @@ class TrackWidget(QWidget):
                 self._error(f"the recording '{source}' is no longer in the viewer")
                 return None
             name = source[len("recording: "):]
+            first = next(iter(channels.values()))
+            time_axis = (float(first.scale[0]), float(first.translate[0]))
+        else:
+            key, time_axis = str(Path(sequence_path).resolve()) if sequence_path else "", (1.0, 0.0)
         diameter = float(self.diameter_spin.value())
 
         warned: list[str] = []  # what the readers warn about, shown when the job ends
@@ -325,14 +339,12 @@ class TrackWidget(QWidget):
 
             references = [read_volume(reference_path, "a reference is one volume: give one time point")] if reference_path else None
             if channels is not None:
-                from ..segment import segment_series
+                from ..segment import found_time_points, segment_series
 
                 recording = stack_from_layers(channels, key, recording=True)
                 tables = segment_series(recording, diameter,
                                         progress=lambda done, total: signals.progress.emit("segmenting", done, total))
-                frames = [t for t, table in enumerate(tables) if len(table)]
-                if not frames:
-                    raise FdlcError(f"{recording.source}: no nuclei found; check the nucleus diameter and the voxel size")
+                frames = found_time_points(tables, recording.source, "check the nucleus diameter and the voxel size")
                 sequence = Sequence([tables[t] for t in frames], frames, [""] * len(frames))
             else:
                 if not sequence_path:
@@ -360,7 +372,7 @@ class TrackWidget(QWidget):
         self._worker = worker
         self._set_busy(True)
         name = name or Path(sequence_path).stem or "sequence"
-        worker.returned.connect(lambda out: self._show(*out, name))
+        worker.returned.connect(lambda out: self._show(*out, name, key, time_axis))
         worker.errored.connect(self._on_error)
         worker.finished.connect(lambda: self._set_busy(False))
         def show_warnings():
@@ -379,16 +391,21 @@ class TrackWidget(QWidget):
         return wait_until_idle(lambda: self._busy, self._signals.idle, timeout)
 
     # ------------------------------------------------------------------------------------------
-    def _show(self, sequence, result, frames, name: str) -> None:
+    def _show(self, sequence, result, frames, name: str, key: str, time_axis: tuple[float, float]) -> None:
+        try:
+            self._add_layers(sequence, result, frames, name, key, time_axis)
+        except Exception as exc:  # on the GUI thread, after the worker: said, not a traceback
+            self._on_error(exc)
+
+    def _add_layers(self, sequence, result, frames, name, key, time_axis) -> None:
         self.sequence, self.result = sequence, result
-        made = track_layers(result, sequence, name, frames)
+        made = track_layers(result, sequence, name, frames, time_axis)
         # A run on the same input replaces its layers; another input's result stays beside it.
-        for layer in self.layers:
-            if layer in self.viewer.layers and layer.name in {kwargs["name"] for _, kwargs, _ in made}:
+        for layer in self._shown.pop(key, []):
+            if layer in self.viewer.layers:
                 self.viewer.layers.remove(layer)
-        self.layers = []
-        for data, kwargs, kind in made:
-            self.layers.append(getattr(self.viewer, f"add_{kind}")(data, **kwargs))
+        self.layers = [getattr(self.viewer, f"add_{kind}")(data, **kwargs) for data, kwargs, kind in made]
+        self._shown[key] = list(self.layers)
         # Neurons are spread in z: show the whole volume at the current time point (in a 2D slice
         # only the neurons of one z plane would show), starting at the first time point.
         self.viewer.dims.ndisplay = 3
@@ -396,6 +413,8 @@ class TrackWidget(QWidget):
         tracked = np.mean([(t >= 0).mean() for t in result.track_id])
         self.status.setText(f"{len(sequence)} time points, {len(result.names)} tracks; "
                             f"{100 * tracked:.0f} % of neurons tracked")
+        if len(made) == 1:
+            notify_warning(f"{name}: no neuron could be tracked (shown untracked); check the reference")
 
     def _on_error(self, exc: Exception) -> None:
         if isinstance(exc, FdlcError):
