@@ -279,7 +279,7 @@ def test_export_neuropal_id(tmp_path, session):
     df = pd.read_csv(out, skiprows=6, keep_default_na=False)
     assert list(df["User ID"]) == ["AVAL", "AVAR", "", ""]
     assert [float(x) for x in df["User Confidence"]] == [1.0, 0.5, 0.0, 0.0]
-    assert list(df["Auto ID"]) == ["AVAL", "AVAR", "RMDL", "RMDR"]
+    assert list(df["Auto ID"]) == ["AVAL", "AVAR", "RMDL", ""]  # RMDR (0.4) is below the threshold: not shown
     t = session.table
     assert np.allclose(df["Internal X (px)"].astype(float), t.xyz[:, 0] / 0.25 + 1, atol=1e-2)
     assert np.allclose(df["Internal Z (slice)"].astype(float), t.xyz[:, 2] + 1, atol=1e-2)
@@ -342,3 +342,20 @@ def test_decisions_read_back_from_an_export(tmp_path, session):
     d = decisions_from_frame(pd.read_csv(out, keep_default_na=False))
     assert {i: (x.name, x.status) for i, x in d.items()} == {0: ("AVAL", "accepted"), 1: ("AVAR", "unsure"), 3: ("SMDVL", "corrected")}
     assert d[3].auto_id == "RMDR"
+
+
+def test_a_lone_question_mark_marks_the_current_name_unsure(session):
+    """Typing `?` alone (meaning "unsure") cleared a correction, silently."""
+    session.assign(2, "AVAR")
+    session.assign(2, "?")
+    assert (session.user_id[2], session.status[2]) == ("AVAR", "unsure")
+
+
+def test_a_neuropal_id_export_shows_each_name_once(tmp_path, session):
+    """A name typed on neuron 3 that neuron 0 had automatically: the NeuroPAL_ID export still gave
+    neuron 0 that Auto ID, and NeuroPAL_ID (which shows the Auto ID where there is no User ID)
+    showed the name twice; the widget shows it once."""
+    session.assign(3, "AVAL")
+    df = pd.read_csv(session.export(tmp_path / "npid.csv", format="neuropal_id"), skiprows=6, keep_default_na=False)
+    shown = [u or a for u, a in zip(df["User ID"], df["Auto ID"])]
+    assert shown == [n.rstrip("?") for n in session.display_names()]

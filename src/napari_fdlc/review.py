@@ -211,6 +211,7 @@ class Decision:
     status: str
     auto_id: str | None = None
     auto_conf: float | None = None
+    candidates: tuple | None = None  # the machine's top K there: (names, probabilities)
 
 
 def carry_decisions(old, xyz_um: np.ndarray, max_distance_um: float = 1.5) -> dict[int, Decision]:
@@ -264,7 +265,10 @@ def set_aside(path: str | os.PathLike) -> Path | None:
 
 def decisions_from_frame(df: pd.DataFrame) -> dict[int, Decision]:
     """User decisions stored in a frame with our export columns (``user_id``, ``status``, and
-    ``auto_id``/``auto_conf`` when present), e.g. a CSV written by :meth:`ReviewSession.export`."""
+    ``auto_id``/``auto_conf`` when present), e.g. a CSV written by :meth:`ReviewSession.export`,
+    or a NeuroPAL_ID export read as a table (its ``label`` is the User ID)."""
+    if "user_id" not in df.columns and {"label", "User Confidence"} <= set(df.columns):
+        df = df.rename(columns={"label": "user_id", "Auto ID": "auto_id", "Auto Confidence": "auto_conf"})
     if "user_id" not in df.columns:
         return {}
     out: dict[int, Decision] = {}
@@ -273,9 +277,10 @@ def decisions_from_frame(df: pd.DataFrame) -> dict[int, Decision]:
         name, conf = parse_name("" if pd.isna(raw) else raw)
         if not name:
             continue
-        st = str(st) if str(st) in STATUSES and str(st) != "auto" else ("unsure" if conf == UNSURE_CONF else "corrected")
         auto = df["auto_id"].iloc[i] if "auto_id" in df.columns else None
         auto = None if auto is None or pd.isna(auto) else str(auto)
+        if str(st) not in STATUSES or str(st) == "auto":
+            st = "unsure" if conf == UNSURE_CONF else ("accepted" if name == auto else "corrected")
         ac = pd.to_numeric(df["auto_conf"].iloc[i], errors="coerce") if "auto_conf" in df.columns else np.nan
         out[i] = Decision(name, conf, st, auto, None if pd.isna(ac) else float(ac))
     return out
@@ -411,7 +416,9 @@ class ReviewSession:
         out = {s: 0 for s in STATUSES}
         for st in self._s.status:
             out[st] += 1
-        out["hidden"] = int(sum(1 for a, st, ok in zip(self._s.auto_id, self._s.status, self.auto_shown()) if st == "auto" and a and not ok))
+        # below the threshold, that is (a name taken by a decision elsewhere is not hidden by it)
+        out["hidden"] = int(sum(1 for a, c, st in zip(self._s.auto_id, self._s.auto_conf, self._s.status)
+                                if st == "auto" and a and c < self.threshold))
         return out
 
     def review_order(self) -> list[int]:
@@ -556,7 +563,7 @@ class ReviewSession:
             s.labelled = bool(d.get("labelled", any(s.auto_id)))
             order = [int(i) for i in d.get("order") or range(n)]
             s.order = order if sorted(order) == list(range(n)) else list(range(n))
-            session.settings = dict(d.get("settings") or {})
+            session.settings = _known_settings(d.get("settings"))
         except (KeyError, TypeError, ValueError, IndexError, OverflowError) as exc:
             raise FdlcError(f"{source}: damaged session file ({type(exc).__name__}: {exc})") from None
         bad = [st for st in s.status if st not in STATUSES]
@@ -671,6 +678,8 @@ class ReviewSession:
     def assign(self, i: int, name: str) -> bool:
         """Give neuron ``i`` the name ``name`` ('AVAL?' = unsure; '' clears the decision)."""
         i = self._row(i)
+        if str(name).strip() == "?":  # 'unsure' of the current name (as U), not a name cleared
+            return self.mark_unsure(i)
         clean, conf = parse_name(name)
         if not clean:
             return self.clear(i)
@@ -731,7 +740,8 @@ class ReviewSession:
         """Row -> :class:`Decision` for every user decision (with the machine's answer there)."""
         s = self._s
         return {
-            i: Decision(s.user_id[i], float(s.user_conf[i]), s.status[i], s.auto_id[i], float(s.auto_conf[i]))
+            i: Decision(s.user_id[i], float(s.user_conf[i]), s.status[i], s.auto_id[i], float(s.auto_conf[i]),
+                        (tuple(s.cand[i]), tuple(float(p) for p in s.cand_p[i])))
             for i in range(len(self))
             if s.status[i] != "auto"
         }
@@ -757,6 +767,8 @@ class ReviewSession:
             if d.auto_id is not None:
                 s.auto_id[i] = d.auto_id
                 s.auto_conf[i] = d.auto_conf if d.auto_conf is not None else s.auto_conf[i]
+            if d.candidates is not None and any(d.candidates[0]):  # what Clear offers again there
+                s.cand[i], s.cand_p[i] = list(d.candidates[0]), np.asarray(d.candidates[1], dtype=float)
         self._changed("edit")
 
     # ----- neurons added, removed or moved in the layer ----------------------------------------
@@ -782,10 +794,14 @@ class ReviewSession:
             position = {o: r for r, o in enumerate(old.order)}
             s.order = sorted(range(n), key=lambda j: (-1, j) if kept[j] is None else (position.get(kept[j], j), j))
 
-        before_n = len(self)
+        current, old_order = self.current, list(self._s.order)
         self._commit(description, change, kind="structure")
-        if self.current is not None and (self.current >= len(self) or len(self) != before_n):
-            self.current = None
+        # The review goes on where it was: at the current neuron's new row, or, when it was
+        # deleted (a false detection), at the one before it, so that N goes to the one after.
+        new_row = {o: j for j, o in enumerate(kept) if o is not None}
+        if current is not None and current not in new_row and current in old_order:
+            current = next((o for o in reversed(old_order[: old_order.index(current)]) if o in new_row), None)
+        self.current = new_row.get(current)
 
     # ----- undo / redo ---------------------------------------------------------------------------
     @property
@@ -903,7 +919,11 @@ class ReviewSession:
                 s = self._s
                 t = s.table
                 user = NeuronTable(t.xyz, t.colours, labels=s.user_id, label_conf=np.nan_to_num(s.user_conf), source=t.source)
-                write_neuropal_id(user, path, self.voxel_size_zyx, auto_id=list(s.auto_id), auto_conf=s.auto_conf)
+                # NeuroPAL_ID shows the Auto ID of a neuron without a User ID: only where the widget
+                # shows it (not below the threshold, not a name a decision took elsewhere).
+                shown = self.auto_shown()
+                auto = [a if st != "auto" or ok else "" for a, st, ok in zip(s.auto_id, s.status, shown)]
+                write_neuropal_id(user, path, self.voxel_size_zyx, auto_id=auto, auto_conf=s.auto_conf)
         except OSError as exc:
             raise FdlcError(f"{path}: cannot be written ({exc.strerror or exc})") from None
         return path
@@ -911,6 +931,19 @@ class ReviewSession:
 
 # ---------------------------------------------------------------------------------------------
 # helpers
+
+
+def _known_settings(raw) -> dict:
+    """A session file's settings with those of the wrong kind left out (as if never saved): the
+    decisions still load, and a damaged entry cannot stop the image from opening."""
+    settings = dict(raw) if isinstance(raw, dict) else {}
+    shape = settings.get("image_shape")
+    if shape is not None and not (isinstance(shape, list) and len(shape) == 3
+                                  and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in shape)):
+        del settings["image_shape"]
+    if not isinstance(settings.get("layer_name", ""), str):
+        del settings["layer_name"]
+    return settings
 
 
 def _check_threshold(t) -> float:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from napari_fdlc._napari._layers import is_image_layer, layer_xyz_um
+from napari_fdlc._napari._layers import META_KEY, is_image_layer, layer_xyz_um, stack_layers
 from napari_fdlc._napari._widget import NONE
 from napari_fdlc.table import NeuronTable, write_table
 
@@ -541,3 +541,191 @@ def test_decisions_survive_renaming_an_image_made_in_napari(make_napari_viewer, 
     assert widget.last_error is None, widget.last_error
     assert sorted(n for n in widget.session.user_id if n) == ["AVAL", "AVAR"]
 
+# Session 32 (a helper review of the review workflow); each says what used to happen.
+
+
+def _press(viewer, key):
+    assert viewer.window._qt_viewer._key_map_handler.press_key(key), f"key {key} not bound"
+
+
+def _add_worm_b(viewer, tmp_path):
+    """A second worm in the same viewer (the sample again, as if read from another file)."""
+    from napari_fdlc.sample import load_sample
+
+    stack, _ = load_sample()
+    for data, kwargs, _ in stack_layers(stack, name="worm B", source_key=str(tmp_path / "worm B.ome.tif")):
+        viewer.add_image(data, **kwargs)
+
+
+def _named_row(layer, k=0):
+    return int(np.flatnonzero(layer.features["auto_id"].to_numpy(object) != "")[k])
+
+
+# --- two worms in one viewer ---------------------------------------------------------------------
+
+
+def test_undo_history_survives_switching_to_another_worm_and_back(labelled_viewer, tmp_path):
+    """Ctrl+Z on worm A after reviewing worm B: "nothing to undo" (going back reloaded A's session from
+    its file, without its history; gui.md: the history is kept while napari runs)."""
+    viewer, widget = labelled_viewer
+    layer_a = widget.auto_label()
+    row = _named_row(layer_a)
+    widget.accept(row)
+    _add_worm_b(viewer, tmp_path)
+    widget.set_channels(**{r: f"worm B [{r}]" for r in "RGBW"})
+    assert widget.auto_label() is not None, widget.last_error
+    viewer.layers.selection.active = layer_a
+    layer_a.selected_data = {row}
+    _press(viewer, "Control-Z")
+    assert widget.layer is layer_a
+    assert layer_a.features["status"][row] == "auto", widget.progress_bar.format()
+
+
+def test_auto_label_again_on_an_earlier_worm_reuses_its_neuron_id_layer(labelled_viewer, tmp_path):
+    """Auto-label A, then B, then A again: a second layer for A's session was added beside the first,
+    the two disagreeing after an edit. One neuron-ID layer per image."""
+    viewer, widget = labelled_viewer
+    layer_a = widget.auto_label()
+    row = _named_row(layer_a)
+    widget.accept(row)
+    path_a = str(widget.session.path)
+    _add_worm_b(viewer, tmp_path)
+    widget.set_channels(**{r: f"worm B [{r}]" for r in "RGBW"})
+    assert widget.auto_label() is not None, widget.last_error
+    widget.set_channels(**{r: f"NeuroPAL sample [{r}]" for r in "RGBW"})
+    assert widget.auto_label() is not None, widget.last_error
+    widget.clear(row)
+    of_a = [layer for layer in viewer.layers
+            if ((layer.metadata or {}).get(META_KEY) or {}).get("session") == path_a]
+    assert [layer.name for layer in of_a] == ["NeuroPAL sample neuron IDs"], \
+        [(layer.name, layer.features["status"][row]) for layer in of_a]
+
+
+# --- editing points by hand, then Auto-label again -----------------------------------------------
+
+
+def test_next_after_deleting_a_false_detection_continues_down_the_list(labelled_viewer):
+    """N after deleting the current point (a false detection) went back to the top of the list."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    order = widget.session.review_order()
+    for _ in range(5):
+        widget.next_neuron()
+    deleted = widget.current
+    follower = order[order.index(deleted) + 1]
+    follower_xyz = widget.session.table.xyz[follower].copy()
+    layer.selected_data = {deleted}
+    layer.remove_selected()
+    assert len(widget.session) == len(order) - 1
+    got = widget.next_neuron()
+    assert np.allclose(widget.session.table.xyz[got], follower_xyz), \
+        f"N went to position {widget.session.review_order().index(got)} of the list"
+
+
+def test_auto_label_again_does_not_silently_drop_a_neuron_added_by_hand(labelled_viewer):
+    """A point added by hand, then Auto-label again (a new detection): it was gone without a word and
+    could not be undone. Now said, and the earlier session kept aside."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    added = layer.data[0] + np.array([0.0, 8.0, 8.0])
+    layer.add(added)
+    assert len(widget.session) == len(layer.data)
+    added_um = widget.session.table.xyz[-1].copy()
+    from napari.utils.notifications import notification_manager
+
+    before = len(notification_manager.records)
+    assert widget.auto_label() is not None, widget.last_error
+    said = [str(r.message) for r in notification_manager.records[before:]]
+
+    def kept():
+        return np.linalg.norm(widget.session.table.xyz - added_um, axis=1).min() < 1.5
+
+    if not kept():
+        widget.undo()
+    assert kept() or any("added" in m or "dropped" in m for m in said), \
+        f"hand-added neuron lost; undo said {widget.progress_bar.format()!r}; messages {said}"
+
+
+def test_clearing_a_decision_carried_by_auto_label_again_offers_the_machines_candidates(labelled_viewer):
+    """Pick candidate 2, Auto-label again, Clear: the dropdown offered only the cleared name at 1.00."""
+    viewer, widget = labelled_viewer
+    widget.auto_label()
+    s = widget.session
+    i = next(j for j in reversed(s.review_order()) if len(s.candidates(j)) == 3)
+    before = s.candidates(i)
+    widget.pick_candidate(i, 2)
+    assert widget.auto_label() is not None, widget.last_error
+    assert widget.session.status[i] == "corrected"
+    widget.clear(i)
+    after = widget.session.candidates(i)
+    assert [c for c, _ in after] == [c for c, _ in before], (before, after)
+
+
+# --- threshold line ------------------------------------------------------------------------------
+
+
+def test_the_coverage_line_counts_no_name_below_a_zero_threshold(labelled_viewer):
+    """At threshold 0, an automatic name taken by a decision elsewhere was counted "below threshold"."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    widget.set_threshold(0.0)
+    s = widget.session
+    named = [int(j) for j in np.flatnonzero(np.asarray(s.auto_id) != "")]
+    q = named[0]
+    r = next(j for j in named[1:] if s.auto_id[j] != s.auto_id[q])
+    widget.assign(r, s.auto_id[q])
+    assert layer.features["label"][q] == ""  # taken, as documented
+    assert "0 below threshold" in widget.coverage_label.text(), widget.coverage_label.text()
+
+
+# --- tables opened as Points ---------------------------------------------------------------------
+
+
+def test_user_ids_of_a_neuropal_id_table_used_as_neurons_are_kept(labelled_viewer, make_napari_viewer, tmp_path):
+    """A NeuroPAL_ID export opened as Points and Auto-labelled: every User ID was dropped (decisions
+    were read from a `user_id` column only), silently."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    a, b, c = (_named_row(layer, k) for k in range(3))
+    widget.accept(a)
+    widget.mark_unsure(b)
+    widget.assign(c, "FOO1")
+    expected = {a: widget.session.user_id[a], b: widget.session.user_id[b], c: "FOO1"}
+    out = widget.export(tmp_path / "worm_npid.csv", format="neuropal_id")
+
+    other = make_napari_viewer()
+    points = other.open(out, plugin="napari-fdlc")[0]
+    _, w2 = other.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    w2.identifier = widget.identifier
+    w2.set_templates(widget._script_templates)
+    w2.set_neurons(points)
+    assert w2.auto_label() is not None, w2.last_error
+    got = {i: w2.session.user_id[i] for i in expected}
+    assert got == expected
+    assert w2.session.status[b] == "unsure"
+
+
+# --- a damaged autosave --------------------------------------------------------------------------
+
+
+def test_a_damaged_session_file_does_not_stop_the_image_from_opening(make_napari_viewer, sample_files, identifier,
+                                                                     templates, tmp_path):
+    """A session file with `"image_shape": 5`: the image did not open (a TypeError out of the reader)."""
+    stack_path = tmp_path / "worm.ome.tif"
+    shutil.copy(sample_files[0], stack_path)
+    viewer = make_napari_viewer()
+    viewer.open(stack_path, plugin="napari-fdlc")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    layer = widget.auto_label()
+    widget.accept(_named_row(layer))
+    path = widget.session.path
+    saved = json.loads(path.read_text())
+    saved["settings"]["image_shape"] = 5
+    path.write_text(json.dumps(saved))
+    try:
+        layers = make_napari_viewer().open(stack_path, plugin="napari-fdlc")
+    except Exception as exc:  # noqa: BLE001
+        raise AssertionError(f"the image did not open: {type(exc).__name__}: {exc}") from None
+    assert sum(type(lyr).__name__ == "Image" for lyr in layers) == 4

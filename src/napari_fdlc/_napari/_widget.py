@@ -137,6 +137,7 @@ class AutoLabelWidget(QWidget):
         self.viewer = getattr(napari_viewer, "__wrapped__", napari_viewer)
         self.session: ReviewSession | None = None
         self.layer = None  # the neuron-ID Points layer
+        self._open_sessions: dict[str, ReviewSession] = {}  # path -> every session shown since napari started
         self.identifier = None  # None: the shipped model (napari_fdlc.identify.default_identifier)
         self.last_error: str | None = None
         self._script_templates: list[NeuronTable] | None = None
@@ -753,11 +754,16 @@ class AutoLabelWidget(QWidget):
             if len(table) == 0:
                 raise FdlcError("no nuclei found: check the W channel and the nucleus diameter")
             carried = dict(decisions)
-            lost = 0  # earlier decisions with no neuron of the new detection to go to
+            lost = missing = 0  # earlier decisions, and neurons (added or moved by hand), the new detection lacks
             if previous_snapshot is not None and previous_snapshot[1]:
                 from_previous = carry_decisions(previous_snapshot, table.xyz)
                 lost = len(previous_snapshot[1]) - len(from_previous)
                 carried.update(from_previous)
+            if previous_snapshot is not None and len(previous_snapshot[0]) and given_table is None:
+                from scipy.spatial import cKDTree
+
+                gap, _ = cKDTree(table.xyz).query(previous_snapshot[0], distance_upper_bound=1.5)
+                missing = int(np.sum(~np.isfinite(gap)))
             if own_decisions is not None:
                 carried = own_decisions
             fixed = {i: d.name for i, d in carried.items()}
@@ -767,10 +773,10 @@ class AutoLabelWidget(QWidget):
             labelling = label_neurons(table, templates, use_colour=use_colour, fixed=fixed or None,
                                       identifier=_with_chirality(identifier, chirality))
             signals.progress.emit(1.0, "done")
-            return stack, table, labelling, carried, lost, implausible_scale(table)
+            return stack, table, labelling, carried, lost, missing, implausible_scale(table)
 
         def done(result):
-            stack, table, labelling, carried, lost, scale_warning = result
+            stack, table, labelling, carried, lost, missing, scale_warning = result
             if stack is not None:
                 self._stack = stack
             voxel = stack.voxel_size_zyx if stack is not None else voxel_without_image
@@ -788,7 +794,7 @@ class AutoLabelWidget(QWidget):
                     lost = max(lost, len(self.session.decisions()) - len(during))
                     carried = {**carried, **during}
                 self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name,
-                                  lost=lost, unreadable=unreadable)
+                                  lost=lost, unreadable=unreadable, missing=missing)
             self._status(self._done_message(len(table), labelling))
             if scale_warning:  # e.g. a voxel size or points layer not in µm: names come out meaningless, say why
                 self._notify_warning(scale_warning)
@@ -927,13 +933,14 @@ class AutoLabelWidget(QWidget):
         self.progress_bar.setFormat(f"{message} (%p%)")
 
     def _new_session(self, table, labelling, carried, image_key, voxel, stack, settings, source_name, base_name=None,
-                     lost: int = 0, unreadable: str | None = None) -> None:
+                     lost: int = 0, unreadable: str | None = None, missing: int = 0) -> None:
         """Show a new session; the session file it replaces is first set aside when it holds
-        decisions the new one lacks (``lost`` of them could not be carried over) or could not be
-        read (``unreadable``): annotations are never lost."""
+        decisions the new one lacks (``lost`` of them could not be carried over), neurons it
+        lacks (``missing``: added or moved by hand, none detected there now) or could not be read
+        (``unreadable``): annotations are never lost."""
         key = image_key or f"layer:{source_name}"
         path = session_file_for(key)
-        if lost or unreadable:
+        if lost or unreadable or missing:
             try:
                 kept = set_aside(path)
             except FdlcError as exc:  # e.g. a read-only folder: the old file stays as it is
@@ -945,20 +952,25 @@ class AutoLabelWidget(QWidget):
             if lost:
                 self._notify_warning(f"{lost} of your decisions had no neuron within 1.5 µm in the new detection "
                                      f"and were not carried over{where}")
+            if missing:
+                self._notify_warning(f"{missing} neuron(s) of the earlier session (added or moved by hand?) have no "
+                                     f"neuron within 1.5 µm in the new detection and are not in it{where}")
         session = ReviewSession(
             table, labelling, threshold=self.threshold, voxel_size_zyx=voxel, image=key, path=path
         )
         session.settings.update(settings)
         if stack is not None:
             session.settings["image_shape"] = list(stack.shape_zyx)
-        name = f"{base_name or _short_name(key.split(':')[-1] if key.startswith('layer:') else key)}{RESULT_SUFFIX}"
-        if self.layer is not None and self.session is not None and self.session.image == key:
-            name = self.layer.name
+        # The image's neuron-ID layer is reused (also when another worm was reviewed since): one per image
+        old_layer = next((layer for layer in self.viewer.layers
+                          if type(layer).__name__ == "Points" and ((layer.metadata or {}).get(META_KEY) or {}).get("image") == key
+                          and ((layer.metadata or {}).get(META_KEY) or {}).get("session")), None)
+        name = old_layer.name if old_layer is not None else \
+            f"{base_name or _short_name(key.split(':')[-1] if key.startswith('layer:') else key)}{RESULT_SUFFIX}"
         session.settings["layer_name"] = name
         if carried:
             session.seed_decisions(carried)
         session.autosave()
-        old_layer = self.layer if (self.layer is not None and self.layer.name == name) else None
         self._link(session, old_layer)
         if source_name != SEGMENT and source_name in self.viewer.layers and self.viewer.layers[source_name] is not self.layer:
             self.viewer.layers[source_name].visible = False
@@ -972,10 +984,9 @@ class AutoLabelWidget(QWidget):
         path = meta.get("session")
         if layer is self.layer:
             return
-        if self.session is not None and self.session.path is not None and str(self.session.path) == str(path):
-            session = self.session
-        else:
-            session = ReviewSession.load(path)
+        # A session reviewed before in this napari is taken up with its undo history (it autosaved
+        # every edit, so the file says the same); another is read from its file.
+        session = self._open_sessions.get(str(path)) or ReviewSession.load(path)
         self._link(session, layer)
         self._status(f"restored {Path(path).name}")
 
@@ -986,6 +997,8 @@ class AutoLabelWidget(QWidget):
         if self.layer is not None:
             self._disconnect_layer(self.layer)
         self.session = session
+        if session.path is not None:
+            self._open_sessions[str(session.path)] = session
         meta = {"session": str(session.path) if session.path else None, "image": session.image}
         if layer is None:
             data, kwargs, _ = review_points(session, session.settings.get("layer_name", "neuron IDs"), meta)
