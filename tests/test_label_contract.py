@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from napari_fdlc.cli import main
 from napari_fdlc.label import labelling_frame
@@ -148,3 +149,88 @@ def test_cpd_refuses_a_flat_test_as_the_model_does(tmp_path, capsys):
     sample.iloc[:60][["x_um", "y_um", "z_um", "label"]].to_csv(template, index=False)
     assert run("label", test, "--template", template, "--method", "cpd", "--out", tmp_path / "out.csv") == 2
     assert "plane" in capsys.readouterr().err
+
+
+# Session 32 (a helper review of fdlc label / handedness against the contract); each says what used to happen.
+
+
+def _stderr_lines(capsys) -> list[str]:
+    return capsys.readouterr().err.strip().splitlines()
+
+
+@pytest.mark.parametrize("value", [1.7e308, 1e60, 1e155])
+def test_a_sentinel_coordinate_is_refused_in_one_line(tmp_path, capsys, worm, other_worm, value):
+    """x_um = 1.7e308 (MATLAB's realmax, a missing-value marker) or 1e60 in a test or template:
+    a LinAlgError traceback (the geometry overflowed); at 1e155 numpy's own RuntimeWarnings on
+    stderr. Beyond 1e30 µm the row is now refused in one line naming it (1e30 is still answered)."""
+    bad = worm.xyz.copy()
+    bad[5, 0] = value
+    test, template = tmp_path / "test.csv", tmp_path / "template.csv"
+    write_table(NeuronTable(bad, worm.colours, worm.labels), test)
+    write_table(other_worm, template)
+    for args in (["label", test], ["label", worm_csv := tmp_path / "w.csv", "--template", test], ["handedness", test]):
+        if args[1] == worm_csv:
+            write_table(worm, worm_csv)
+        assert run(*args, *(["--out", tmp_path / "o.csv"] if args[0] == "label" else [])) == 2
+        err = _stderr_lines(capsys)
+        assert len(err) == 1 and "line 7, column 'x_um'" in err[0] and "no position in µm" in err[0], err
+
+
+def test_a_table_in_millimetres_is_named_with_its_units_warning_not_refused_as_flat(tmp_path, capsys, worm):
+    """A whole head in millimetres was refused as "the neurons lie in a plane (0.01 µm thick)",
+    after the units warning (two lines, the advice about z wrong); fdlc handedness refused it too.
+    The flatness limit now shrinks with the span below a head's."""
+    test, flipped = tmp_path / "mm.csv", tmp_path / "flipped_mm.csv"
+    write_table(NeuronTable(worm.xyz * 1e-3, worm.colours, worm.labels), test)
+    write_table(NeuronTable(worm.xyz * [1, 1, -1] * 1e-3, worm.colours, worm.labels), flipped)
+    assert run("label", test, "--out", tmp_path / "o.csv") == 0
+    err = _stderr_lines(capsys)
+    assert "cannot be µm" in err[0] and all(line.startswith("fdlc: warning:") for line in err), err
+    assert run("handedness", test, flipped) == 0
+    out = capsys.readouterr().out
+    assert f"{test}: same" in out and f"{flipped}: mirrored" in out, out
+
+
+def test_a_row_of_blank_cells_between_neurons_is_refused_not_dropped(tmp_path, capsys, worm):
+    """A cleared row (',,,,') between neurons 10 and 11 was dropped, so every later neuron_index
+    was one less than the row pandas (a benchmark) reads there: 145 of 155 answers joined to the
+    wrong neuron. Refused now, naming its line."""
+    test = tmp_path / "test.csv"
+    write_table(NeuronTable(worm.xyz, worm.colours), test)
+    lines = test.read_text().splitlines()
+    lines.insert(11, "," * lines[0].count(","))
+    test.write_text("\n".join(lines) + "\n")
+    assert run("label", test, "--out", tmp_path / "o.csv") == 2
+    err = _stderr_lines(capsys)
+    assert len(err) == 1 and "line 12" in err[0], err
+
+
+def test_a_long_text_cell_in_another_column_is_kept(tmp_path, worm, other_worm):
+    """A 200 000-character note in a column of its own: csv's field limit raised a traceback."""
+    df = worm.to_dataframe().drop(columns=["label"])
+    df["note"] = ["x" * 200_000] + ["n"] * (len(df) - 1)
+    test, template, out = tmp_path / "test.csv", tmp_path / "template.csv", tmp_path / "o.csv"
+    df.to_csv(test, index=False)
+    write_table(other_worm, template)
+    assert run("label", test, "--template", template, "--out", out) == 0
+    assert pd.read_csv(out)["note"].iloc[0] == "x" * 200_000
+
+
+def test_out_may_not_replace_the_weights(tmp_path, capsys, worm, untrained_weights):
+    """--out onto the --weights' .safetensors (or, without --weights, the shipped model's):
+    the weights were replaced by the answer."""
+    import shutil
+
+    weights = tmp_path / "model"
+    for suffix in (".safetensors", ".json"):
+        shutil.copy(f"{untrained_weights}{suffix}", f"{weights}{suffix}")
+    before = (tmp_path / "model.safetensors").read_bytes()
+    test = tmp_path / "test.csv"
+    write_table(worm, test)
+    assert run("label", test, "--weights", weights, "--out", tmp_path / "model.safetensors") == 2
+    assert "would replace an input" in _stderr_lines(capsys)[0]
+    assert (tmp_path / "model.safetensors").read_bytes() == before
+    from napari_fdlc.identify import shipped_weights
+
+    assert run("label", test, "--out", f"{shipped_weights()}.json") == 2
+    assert "would replace an input" in _stderr_lines(capsys)[0]

@@ -188,3 +188,44 @@ def test_an_atlas_keeps_lab_names_with_spaces(tmp_path):
 def test_generate_worm_refuses_a_negative_count_of_unnamed_neurons():
     with pytest.raises(FdlcError):
         generate_worm(seed=0, n_unnamed=-1)
+
+
+# Session 32 (a helper review of fdlc atlas); each says what used to happen.
+
+
+def _corpus(root, lab: str, worms: list) -> str:
+    from napari_fdlc.table import write_table
+
+    (root / lab).mkdir(parents=True)
+    rows = ["dataset,dandiset,worm,n_neurons,n_labeled"]
+    for i, table in enumerate(worms):
+        write_table(table, root / lab / f"w{i}.csv")
+        rows.append(f"{lab},0,w{i},{len(table)},{int(table.named.sum())}")
+    (root / "worms.csv").write_text("\n".join(rows) + "\n")
+    return str(root)
+
+
+def test_an_atlas_of_one_lab_whose_name_holds_a_space_reads_back_that_lab(tmp_path):
+    """One lab called 'Lab A': the header had no comma and was read the old way, ('Lab', 'A')."""
+    from napari_fdlc.cli import main
+
+    corpus = _corpus(tmp_path / "corpus", "Lab A", [generate_worm(seed=s) for s in range(10, 14)])
+    assert main(["atlas", "--corpus", corpus, "--out", str(tmp_path / "atlas.csv")]) == 0
+    assert load_atlas(tmp_path / "atlas.csv").labs == ("Lab A",)
+
+
+def test_the_atlas_takes_the_handedness_of_most_of_its_worms(tmp_path):
+    """Four worms one way and a z-flipped one with the most names: the atlas took the best-named
+    worm's handedness, so the four were 'mirrored' relative to it (and --chirality meant the
+    opposite for them). The corpus's own atlases are unchanged: in every leave-one-lab-out
+    subset, most worms share the best-named one's handedness (40 of 97 mirrored in all)."""
+    from napari_fdlc.geometry import mirrored_by_names
+
+    worms = [generate_worm(seed=s) for s in range(10, 14)]
+    full = atlas_worm(load_atlas(), np.random.default_rng(5))
+    flipped = NeuronTable(full.xyz * [1.0, 1.0, -1.0] * 1.3, full.colours, full.labels)
+    assert flipped.named.sum() > max(w.named.sum() for w in worms)
+    from napari_fdlc.corpus import load_corpus
+
+    atlas = build_atlas(load_corpus(_corpus(tmp_path / "corpus", "L", worms + [flipped])))
+    assert [mirrored_by_names(atlas.names, atlas.mean, w, 6) for w in worms] == [False] * 4

@@ -220,11 +220,15 @@ def test_a_position_column_written_otherwise_is_named_in_the_error(tmp_path):
         read_table(_csv(tmp_path, "X (um),Y_UM,z_um\n1,2,3\n"))
 
 
-def test_rows_of_blank_cells_are_no_neurons(tmp_path):
-    """Rows of commas alone (Excel leaves them below a table) were refused as empty cells; they
-    are dropped as blank lines are, and a bad cell after them is still named on its own line."""
-    table = read_table(_csv(tmp_path, "x_um,y_um,z_um,label\n1,2,3,AVAL\n,,,\n4,5,6,AVAR\n, ,,\n"))
+def test_rows_of_blank_cells_below_the_table_are_no_neurons(tmp_path):
+    """Rows of commas alone below a table (Excel leaves them) were refused as empty cells; they are
+    dropped. One between neurons was dropped too (session 31), which shifted every later
+    neuron_index against the file's row numbers as pandas reads them: it is refused, with its line,
+    and a bad cell after blank lines is still named on its own line."""
+    table = read_table(_csv(tmp_path, "x_um,y_um,z_um,label\n1,2,3,AVAL\n4,5,6,AVAR\n,,,\n, ,,\n"))
     assert table.xyz.tolist() == [[1, 2, 3], [4, 5, 6]] and list(table.labels) == ["AVAL", "AVAR"]
+    with pytest.raises(TableError, match="line 3, column 'x_um': an empty cell"):
+        read_table(_csv(tmp_path, "x_um,y_um,z_um\n1,2,3\n,,\n4,5,6\n", "middle.csv"))
     with pytest.raises(TableError, match="line 5, column 'z_um': abc"):
-        read_table(_csv(tmp_path, "x_um,y_um,z_um\n1,2,3\n,,\n\n7,8,abc\n", "bad.csv"))
+        read_table(_csv(tmp_path, "x_um,y_um,z_um\n1,2,3\n\n\n7,8,abc\n,,\n", "bad.csv"))
 

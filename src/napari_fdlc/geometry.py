@@ -67,7 +67,8 @@ def canonical_frame(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     centred = xyz - mean
     rotation = np.eye(3)
     if len(xyz) >= 2:
-        cov = np.cov(centred[:, :2].T)
+        with np.errstate(over="ignore", invalid="ignore"):
+            cov = np.cov(centred[:, :2].T)
         if np.all(np.isfinite(cov)) and np.any(cov != 0):
             eigval, eigvec = np.linalg.eigh(cov)
             axis = eigvec[:, np.argmax(eigval)]
@@ -87,7 +88,11 @@ def _levelling(points: np.ndarray) -> np.ndarray:
     (``MIN_LEVEL_NEURONS``, ``MIN_ELONGATION``); the identity otherwise."""
     if len(points) < MIN_LEVEL_NEURONS:
         return np.eye(3)
-    eigval, eigvec = np.linalg.eigh(np.cov(points.T))  # ascending
+    with np.errstate(over="ignore", invalid="ignore"):
+        cov = np.cov(points.T)
+    if not np.all(np.isfinite(cov)):  # positions so far out that their spread overflows: no axis to level by
+        return np.eye(3)
+    eigval, eigvec = np.linalg.eigh(cov)  # ascending
     if not eigval[-1] >= MIN_ELONGATION * eigval[-2]:
         return np.eye(3)
     axis = eigvec[:, -1]
@@ -99,6 +104,7 @@ def _levelling(points: np.ndarray) -> np.ndarray:
 
 
 FLAT_UM = 1.0  # neurons thinner than this (SD across their plane) have no handedness; corpus worms: 3.6 or more
+HEAD_SPAN_UM = 100.0  # a head's longest extent, about
 
 
 def thickness_um(xyz: np.ndarray) -> float:
@@ -112,8 +118,13 @@ def thickness_um(xyz: np.ndarray) -> float:
 
 def refuse_flat(xyz: np.ndarray, source: str, min_neurons: int) -> None:
     """Refuse (FdlcError) a table of ``min_neurons`` or more that lies in one plane: a worm and
-    its mirror image are then the same points, and every left/right name a guess."""
-    if len(xyz) >= min_neurons and (depth := thickness_um(xyz)) < FLAT_UM:
+    its mirror image are then the same points, and every left/right name a guess. Below a
+    head's span (``HEAD_SPAN_UM``) the limit shrinks with the span: a table in millimetres is
+    as thick for its size as one in µm (its units are another warning), not flat."""
+    if len(xyz) < min_neurons:
+        return
+    span = float(np.ptp(xyz, axis=0).max())
+    if (depth := thickness_um(xyz)) < FLAT_UM * min(1.0, span / HEAD_SPAN_UM):
         raise FdlcError(f"{source or 'the test'}: the neurons lie in a plane ({depth:.2f} µm thick), so left "
                         "cannot be told from right; a 3D table is needed (check the z positions and the voxel size in z)")
 

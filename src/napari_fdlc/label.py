@@ -17,7 +17,7 @@ import pandas as pd
 from .errors import FdlcError, check_output, warn
 from .geometry import refuse_flat
 from .identify import (ADAPT_MIN_TESTS, FEW_NEURONS, Identifier, can_adapt_colours, colour_note, default_identifier,
-                       harmonise, label_neurons, smaller_worm_note)
+                       harmonise, label_neurons, shipped_weights, smaller_worm_note)
 from .match import Labelling, make_labelling, name_probabilities
 from .table import COORDS, NeuronTable, read_volume, warn_implausible_scales, write_table
 
@@ -116,7 +116,10 @@ def label_files(
             warn(f"{t.source}: only {len(t)} neuron(s): names from so few positions are guesses, confidences too")
     if method == "cpd" and (chirality != "auto" or not use_atlas):
         warn("--chirality and --no-atlas are for the fdlc method (cpd tries both handednesses): ignored here")
-    paths = _output_paths(tests, out, [*tests, *(templates or [])])
+    from .model import model_files
+
+    # The weights (the shipped ones by default) are read too, never written.
+    paths = _output_paths(tests, out, [*tests, *(templates or []), *model_files(weights or shipped_weights())])
     applies = not template_tables and chirality == "auto"
     if shared_handedness and not applies:
         warn("--shared-handedness is for the built-in panel with --chirality auto: ignored here")

@@ -134,7 +134,8 @@ class Atlas:
 
     def save(self, path: str | Path) -> None:
         with atomic_write(path, "w", encoding="utf-8", newline="") as handle:
-            labs = ", ".join(self.labs)  # a lab's name may hold spaces
+            # ", " between labs (a lab's name may hold spaces); one lab ends in "," to say so
+            labs = ", ".join(self.labs) + ("," if len(self.labs) == 1 else "")
             handle.write(f"# napari-fdlc atlas: {self.worms} worms of {labs}; worm scale {self.worm_scale:.4f}\n")
             self.to_frame().to_csv(handle, index=False, float_format="%.4f")
 
@@ -148,7 +149,7 @@ class Atlas:
             worms = int(counts.split(":")[1].split()[0])
             labs = counts.split(" of ", 1)[1]
             # ", " between labs; atlases written before session 31 have spaces
-            labs = tuple(lab.strip() for lab in labs.split(",")) if "," in labs else tuple(labs.split())
+            labs = tuple(lab.strip() for lab in labs.split(",") if lab.strip()) if "," in labs else tuple(labs.split())
             _check_numbers(df, path)
             worm_scale = float(scale) if scale else 1.0
             if not (np.isfinite(worm_scale) and worm_scale > 0):
@@ -224,7 +225,7 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
     aligned = [None] * len(tables)
     scales = []
     for _ in range(rounds):
-        scales = []
+        scales, mirrored = [], []
         for k, (t, c) in enumerate(zip(tables, canon)):
             rows = [i for i, n in enumerate(t.labels) if n in mean]
             if len(rows) < 4:
@@ -234,6 +235,7 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
             rot, scale, mu_s, mu_d, _ = _similarity(c[rows], dst, allow_mirror=True)
             aligned[k] = scale * (c - mu_s) @ rot.T + mu_d
             scales.append(scale)
+            mirrored.append(np.linalg.det(rot) < 0)
         positions: dict[str, list] = {}
         for t, a in zip(tables, aligned):
             if a is None:
@@ -266,6 +268,10 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
     else:  # no worm with colour: none in the atlas, not a made-up 0 ± 1 (its panel's colours random)
         colour = colour_sd = np.full((len(names), 3), np.nan)
     mean_pos = np.array([p.mean(0) for p in pos])
+    if 2 * sum(mirrored) > len(mirrored):
+        # The atlas has the handedness of most of its worms, not of the best-named one (which only
+        # anchors the alignment): --chirality same / mirrored mean what they say about a lab's worms.
+        mean_pos[:, 2] *= -1
     centre = np.median(mean_pos, axis=0)
     return Atlas(
         names=np.array(names, dtype=object),

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import sys
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -250,7 +251,7 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
             raise TableError(f"{name}: its first line says the columns are separated by {first[4:]!r}; "
                              "save it as a comma-separated CSV (UTF-8, '.' before decimals)")
         skiprows += 1
-    records = csv.reader(io.StringIO(text))
+    records = _csv_records(text)
     for _ in range(skiprows):
         next(records, None)
     header = next(records, None)
@@ -281,24 +282,43 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
     # kept, it would be written back under pandas' name for it, 'Unnamed: 3'
     nameless = [c for c in df.columns if str(c).startswith("Unnamed: ") and not df[c].fillna("").str.strip().ne("").any()]
     df = df.drop(columns=nameless)
-    # A row of blank cells (',,,,' as Excel leaves below a table) is no neuron: dropped, as a blank line is
-    blank = (df.isna() | df.apply(lambda column: column.str.strip().eq(""))).all(axis=1)
-    if blank.any():
-        df = df[~blank].reset_index(drop=True)
+    # Rows of blank cells (',,,,') that Excel leaves below a table are no neurons: dropped. One
+    # between neurons stays a row (pandas keeps it too: a benchmark's row numbers, neuron_index,
+    # must stay the file's), and its empty position is then refused with its line.
+    blank = (df.isna() | df.apply(lambda column: column.str.strip().eq(""))).all(axis=1).to_numpy()
+    below = len(blank) - int(np.argmin(blank[::-1])) if not blank.all() else 0
+    df = df.iloc[:below].reset_index(drop=True)
     # Kept for messages only (the file's own line of a bad cell: blank lines and quoted line
     # breaks shift the rows), and read again only then.
     df.attrs["csv"] = (text, skiprows)
     return df
 
 
+def _csv_records(text: str):
+    """The rows of CSV ``text``, with no limit on a cell's length (pandas has none: a long note
+    in a column of its own is a cell, not an error)."""
+    limit = sys.maxsize
+    while True:  # the largest the platform's C long holds
+        try:
+            csv.field_size_limit(limit)
+            break
+        except OverflowError:
+            limit //= 2
+    return csv.reader(io.StringIO(text))
+
+
 def _record_lines(text: str, skiprows: int) -> list[int]:
-    """The file line on which each data row starts, skipping blank lines as pandas does."""
-    reader = csv.reader(io.StringIO(text))
-    starts, previous = [], 0
+    """The file line on which each data row starts, skipping blank lines as pandas does (and,
+    as :func:`_read_csv`, rows of blank cells below the table)."""
+    reader = _csv_records(text)
+    starts, filled, previous = [], [], 0
     for row in reader:
         start, previous = previous + 1, reader.line_num
-        if start > skiprows and any(cell.strip() for cell in row):  # as _read_csv: no blank line, no row of blank cells
+        if start > skiprows and row:
             starts.append(start)
+            filled.append(any(cell.strip() for cell in row))
+    while filled and not filled[-1]:
+        starts.pop(), filled.pop()
     return starts[1:]  # the first is the header
 
 
@@ -307,6 +327,9 @@ def file_line(df: pd.DataFrame | None, row: int, first_line: int = 2) -> int:
     its ``text``) starts: blank lines and quoted line breaks counted, as an editor shows it."""
     lines = _record_lines(*df.attrs["csv"]) if df is not None and "csv" in df.attrs else []
     return lines[row] if df is not None and len(lines) == len(df) else row + first_line
+
+
+MAX_POSITION_UM = 1e30  # beyond any microscope; the registration still works this far out (float32)
 
 
 def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, allow_empty: bool,
@@ -357,6 +380,12 @@ def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line:
         raise TableError(f"{source}: the table has no rows")
     xyz = np.stack([_numeric_column(df, c, source, first_line, allow_empty=False, shown_as=shown.get(c, c))
                     for c in COORDS], axis=1)
+    far = np.abs(xyz) > MAX_POSITION_UM
+    if far.any():  # MATLAB's realmax (1.8e308) marks a missing value; such numbers overflow the geometry
+        row, axis = (int(v) for v in np.argwhere(far)[0])
+        raise TableError(f"{source}: line {file_line(df, row, first_line)}, column '{shown.get(COORDS[axis], COORDS[axis])}': "
+                         f"{xyz[row, axis]:g} is no position in µm (beyond {MAX_POSITION_UM:g}); "
+                         "a missing-value marker? remove the row or give the position")
     colours = {}
     for c in COLOUR_CHANNELS:
         if c in df.columns:
