@@ -235,3 +235,12 @@ def test_a_setting_given_as_text_of_a_number_is_used():
     """nucleus_radius_um="2" was checked as a number, then compared as text (TypeError)."""
     stack, truth = render_stack(_small_worm(), nucleus_radius_um="2")
     assert len(truth) == 12
+
+
+def test_random_worm_that_cannot_be_made_is_an_fdlc_error():
+    """500 neurons in a 10 µm ball, or 0 neurons: a plain ValueError (a broadcasting one for 0)."""
+    from napari_fdlc.render import random_worm
+
+    for args in ((500, (10, 10, 10)), (0,)):
+        with pytest.raises(FdlcError):
+            random_worm(*args)

@@ -323,3 +323,20 @@ def test_cli_segment_bad_input(tmp_path, rendered, capsys, args, words):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("fdlc: error:") and words in err[0], err
     assert not out.exists()
+
+
+def test_positions_and_roles_given_in_memory_are_checked_as_a_file_s_are(tmp_path):
+    """measure_colours(stack, xyz.T) read 30 colours at scrambled places; Stack(..., ['R', 'G',
+    'W', 'W']) was accepted (detection on one W, colours of the other; read_stack refuses it);
+    and a stack's roles written with write_tiff came back as None unless its channel names said
+    them (now written as the OME channels' fluorophores)."""
+    stack, truth = render_stack(random_worm(30, seed=3), seed=1, gut=False)
+    with pytest.raises(FdlcError, match="transpose"):
+        measure_colours(stack, truth.xyz.T.copy())
+    with pytest.raises(FdlcError, match="W given more than once"):
+        Stack(stack.data, stack.voxel_size_zyx, ["R", "G", "W", "W"])
+    from napari_fdlc.io.images import read_stack
+
+    write_tiff(tmp_path / "s.ome.tif", Stack(stack.data, stack.voxel_size_zyx, ["R", "G", "B", "W"], channel_names=["ch0", "ch1", "ch2", "ch3"]))
+    back = read_stack(tmp_path / "s.ome.tif")
+    assert back.channel_roles == ["R", "G", "B", "W"] and back.channel_names == ["ch0", "ch1", "ch2", "ch3"]

@@ -232,3 +232,25 @@ def test_rows_of_blank_cells_below_the_table_are_no_neurons(tmp_path):
     with pytest.raises(TableError, match="line 5, column 'z_um': abc"):
         read_table(_csv(tmp_path, "x_um,y_um,z_um\n1,2,3\n\n\n7,8,abc\n,,\n", "bad.csv"))
 
+
+
+# Session 32 (a helper review of the Python API); each says what used to happen.
+
+
+def test_neuron_table_in_memory_reads_names_and_shapes_as_a_file_is_read(worm):
+    """NeuronTable(xyz.T) (a (3, N) array) was reshaped into scrambled rows; labels or colours of
+    another length gave numpy's reshape error; a label 'AVAL?' stayed the name 'AVAL?', sure."""
+    with pytest.raises(TableError, match="transpose"):
+        NeuronTable(worm.xyz.T.copy())
+    with pytest.raises(TableError, match="3 labels for 155 neurons"):
+        NeuronTable(worm.xyz, labels=["AVAL", "AVAR", "ADAL"])
+    with pytest.raises(TableError, match="3 colour R"):
+        NeuronTable(worm.xyz, {"R": [1.0, 2.0, 3.0]})
+    table = NeuronTable([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]], labels=["AVAL?", "AVAR"])
+    assert list(table.labels) == ["AVAL", "AVAR"] and list(table.label_conf) == [0.5, 1.0]
+
+
+def test_write_neuropal_id_with_auto_ids_and_no_confidences(tmp_path, worm):
+    """auto_id without auto_conf: a TypeError (iteration over a 0-d array)."""
+    write_neuropal_id(worm, tmp_path / "npid.csv", auto_id=list(worm.labels))
+    assert len(read_table(tmp_path / "npid.csv")) == len(worm)

@@ -267,3 +267,14 @@ def test_baselines_refuse_a_second_reference(gentle, worm, method):
     (the CLI refused it already)."""
     with pytest.raises(FdlcError, match="one reference"):
         track(gentle[0], references=[NeuronTable(worm.xyz, worm.colours), worm], method=method)
+
+
+def test_join_by_time_and_track_settings_refuse_what_they_would_misread(worm, gentle):
+    """join_by_time with fewer times than volumes dropped the volumes beyond them; a chunk of 2.5
+    or 1.5 refinement steps passed the check and died in range() after the reference search."""
+    volumes = [worm.subset(np.arange(10)), worm.subset(np.arange(10, 20)), worm.subset(np.arange(20, 30))]
+    with pytest.raises(FdlcError, match="2 times for 3 volumes"):
+        join_by_time(volumes, times=[0, 1])
+    for bad in ({"chunk": 2.5}, {"refine_steps": 1.5}):
+        with pytest.raises(FdlcError, match="whole number"):
+            track(gentle[0], settings=TrackSettings(**bad))

@@ -588,9 +588,11 @@ class Identifier:
         answers. ``fixed`` applies to every test (give it with one test). With an ``atlas``, a
         test that spreads along the body further than a head and than every template is named
         in its head window only (:func:`napari_fdlc.register.head_window`), as the panel does."""
+        checked = {}
         for test in tests:
             self._check(test, templates, use_colour)
-            check_fixed(fixed, len(test))
+            checked = check_fixed(fixed, len(test))
+        fixed = checked or None  # as a table's names are read: ' ADAL ' and 'ADAL?' are ADAL
         windows = [None] * len(tests)
         if atlas is not None:
             mixture = atlas.mixture()
@@ -768,7 +770,7 @@ class Identifier:
         A test that shows much of the body beyond the head is named in its head only
         (:func:`napari_fdlc.register.head_window`); the rest get no name."""
         use_colour = self._check(test, panel.templates, use_colour)
-        check_fixed(fixed, len(test))
+        fixed = check_fixed(fixed, len(test)) or None  # as a table's names are read: ' ADAL ' and 'ADAL?' are ADAL
         window = head_window(test, panel.atlas.mixture(), use_colour)
         if window is None:
             result = self._label_panel(test, panel, use_colour, fixed)

@@ -27,11 +27,10 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.special import erfc
 
-from .io.images import ImageError, Stack, StackSeries
+from .io.images import FLUOROPHORES, ImageError, Stack, StackSeries
 from .table import NeuronTable
 
 CHANNELS = ("R", "G", "B", "W")
-CHANNEL_NAMES = {"R": "mNeptune2.5", "G": "CyOFP1.5", "B": "mTagBFP2", "W": "TagRFP-T", "GFP": "GCaMP6s"}
 
 # Bleed-through: row = detected channel, column = fluorophore (R, G, B, W). CyOFP and TagRFP-T
 # emit in overlapping orange bands; mNeptune's excitation catches some TagRFP-T; BFP leaks a
@@ -232,7 +231,7 @@ def render_stack(
     inside = np.all((zyx >= -0.5 * vox) & (zyx <= (shape - 0.5) * vox), axis=1)
     stack = Stack(
         data, tuple(float(v) for v in vox), channels, source=f"<rendered seed={seed}>",
-        channel_names=[CHANNEL_NAMES[c] for c in channels],
+        channel_names=[FLUOROPHORES[c] for c in channels],
     )
     extra = table.extra.copy() if table.extra is not None else pd.DataFrame(index=range(n))
     extra["radius_um"] = radius
@@ -438,6 +437,8 @@ def random_worm(
 
     (``napari_fdlc.reference.generate_worm`` makes realistic, named worms from the atlas.)
     """
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ImageError(f"random_worm: n must be a whole number of neurons, at least 1 (got {n!r})")
     rng = np.random.default_rng(seed)
     semi = np.asarray(size_um, dtype=float) / 2
     points: list[np.ndarray] = []
@@ -452,7 +453,7 @@ def random_worm(
             continue
         points.append(q)
     if len(points) < n:
-        raise ValueError(f"cannot place {n} neurons {min_spacing_um} µm apart in {tuple(size_um)} µm")
+        raise ImageError(f"cannot place {n} neurons {min_spacing_um} µm apart in {tuple(size_um)} µm")
     xyz = np.asarray(points) + semi
     on = rng.random((n, 3)) < 0.55
     raw = np.where(on, rng.uniform(300, 1000, (n, 3)), rng.uniform(20, 80, (n, 3)))

@@ -49,7 +49,7 @@ from scipy.spatial import cKDTree
 
 from .errors import FdlcError, warn
 from .io.images import ImageError, Stack, StackSeries
-from .table import NeuronTable
+from .table import NeuronTable, positions
 
 Progress = Callable[[float, str], None]
 MAX_DIAMETER_UM = 20.0  # a nucleus diameter beyond this is not a nucleus (neurons' are 2-4 µm)
@@ -450,7 +450,7 @@ def measure_colours(
     from R and G (:func:`w_bleed_slopes`). R, G, B, W are z-scored per volume (``zscore``);
     GFP stays in background-subtracted counts, which is what activity readouts need.
     """
-    xyz_um = np.asarray(xyz_um, dtype=float).reshape(-1, 3)
+    xyz_um = positions(xyz_um)
     vox = np.asarray(stack.voxel_size_zyx, dtype=float)
     centres = xyz_um[:, ::-1] / vox
     inner = _ellipsoid_offsets(radius_um, vox)
@@ -600,8 +600,7 @@ def score_detections(truth_xyz: np.ndarray, found_xyz: np.ndarray, max_distance_
     from scipy.optimize import linear_sum_assignment
     from scipy.spatial.distance import cdist
 
-    truth_xyz = np.asarray(truth_xyz, dtype=float).reshape(-1, 3)
-    found_xyz = np.asarray(found_xyz, dtype=float).reshape(-1, 3)
+    truth_xyz, found_xyz = positions(truth_xyz, "true positions"), positions(found_xyz, "detections")
     errors = np.zeros(0)
     pairs = np.zeros((0, 2), dtype=int)
     if len(truth_xyz) and len(found_xyz):

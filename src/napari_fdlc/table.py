@@ -60,15 +60,17 @@ class NeuronTable:
     text: pd.DataFrame | None = None
 
     def __post_init__(self) -> None:
-        self.xyz = np.asarray(self.xyz, dtype=np.float64).reshape(-1, 3)
+        self.xyz = positions(self.xyz)
         n = len(self.xyz)
-        self.colours = {c: np.asarray(v, dtype=np.float64).reshape(n) for c, v in self.colours.items()}
+        self.colours = {c: _per_neuron(v, n, f"colour {c}", np.float64) for c, v in self.colours.items()}
         if self.labels is None:
             self.labels = np.full(n, "", dtype=object)
-        self.labels = np.asarray([_clean(s) for s in self.labels], dtype=object).reshape(n)
+        # As a table's names are read: 'AVAL?' is AVAL, unsure
+        parsed = [parse_name(s) for s in _per_neuron(self.labels, n, "labels", object)]
+        self.labels = np.array([name for name, _ in parsed], dtype=object).reshape(n)
         if self.label_conf is None:
-            self.label_conf = np.where(self.labels != "", 1.0, 0.0)
-        self.label_conf = np.asarray(self.label_conf, dtype=np.float64).reshape(n)
+            self.label_conf = np.array([conf for _, conf in parsed])
+        self.label_conf = _per_neuron(self.label_conf, n, "label confidences", np.float64)
         if self.extra is None:
             self.extra = pd.DataFrame(index=range(n))
         self.extra = self.extra.reset_index(drop=True)
@@ -191,6 +193,24 @@ def warn_implausible_scales(tables: list["NeuronTable"]) -> None:
         reason = implausible_scale(table)
         if reason:
             warn(reason)
+
+
+def positions(xyz, what: str = "positions") -> np.ndarray:
+    """``xyz`` as an (N, 3) float array, one row of x, y, z per neuron (one point may be given
+    flat). Refused (TableError) otherwise: a (3, N) array reshaped would scramble every neuron."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim == 2 and xyz.shape[0] == 3 and xyz.shape[1] != 3:
+        raise TableError(f"{what} of shape {xyz.shape}: give one row of x, y, z per neuron (transpose them)")
+    if not (xyz.ndim == 2 and xyz.shape[1] == 3 or xyz.shape == (3,) or xyz.size == 0):
+        raise TableError(f"{what} of shape {xyz.shape}: give one row of x, y, z per neuron")
+    return xyz.reshape(-1, 3)
+
+
+def _per_neuron(values, n: int, what: str, dtype) -> np.ndarray:
+    values = np.asarray(values, dtype=dtype).ravel()
+    if len(values) != n:
+        raise TableError(f"{len(values)} {what} for {n} neurons: give one per neuron")
+    return values
 
 
 def _clean(name) -> str:
@@ -482,8 +502,10 @@ def write_neuropal_id(
     rows["User Confidence"] = [f"{c:g}" if s else "0" for s, c in zip(table.labels, table.label_conf)]
     rows["Emphasized?"] = ["0"] * n
     if auto_id is not None:
-        rows["Auto ID"] = list(auto_id)
-        rows["Auto Confidence"] = [f"{c:.4f}" for c in np.asarray(auto_conf)]
+        rows["Auto ID"] = [str(a or "") for a in _per_neuron(auto_id, n, "automatic names", object)]
+        if auto_conf is not None:  # an Auto ID without its confidence says none
+            confs = _per_neuron(auto_conf, n, "automatic confidences", np.float64)
+            rows["Auto Confidence"] = [f"{c:.4f}" if a else "" for a, c in zip(rows["Auto ID"], confs)]
     for axis, col in enumerate(["Real X (um)", "Real Y (um)", "Real Z (um)"]):
         rows[col] = [f"{v:.4f}" for v in table.xyz[:, axis]]
     if voxel_size_zyx is not None:

@@ -96,10 +96,10 @@ class TrackSettings:
             raise FdlcError(f"unknown search '{self.search}' (use propagate or full)")
         if self.combine not in ("best", "mean"):
             raise FdlcError(f"unknown combine '{self.combine}' (use best or mean)")
-        if self.refine_steps < 0:
-            raise FdlcError(f"refine steps must be 0 or more (got {self.refine_steps})")
-        if self.chunk < 1:
-            raise FdlcError(f"chunk must be at least 1 (got {self.chunk})")
+        for name, least in (("refine_steps", 0), ("chunk", 1)):
+            value = getattr(self, name)
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < least:
+                raise FdlcError(f"{name.replace('_', ' ')} must be a whole number of at least {least} (got {value!r})")
         if self.placement not in ("geometry", "model"):
             raise FdlcError(f"unknown placement '{self.placement}' (use geometry or model)")
         if self.follow_with not in ("tracking", "full"):
@@ -222,6 +222,8 @@ def join_by_time(volumes: list[NeuronTable], times: list | None = None) -> pd.Da
     """One table with a ``t`` column in front (default t = 0, 1, …) from a table per time
     point: what :func:`split_by_time` splits again."""
     times = list(range(len(volumes))) if times is None else list(times)
+    if len(times) != len(volumes):  # zip would drop the volumes beyond the times
+        raise FdlcError(f"{len(times)} times for {len(volumes)} volumes: give one time per volume")
     frames = []
     for t, volume in zip(times, volumes):
         df = volume.to_dataframe().drop(columns=["t"], errors="ignore")

@@ -28,6 +28,7 @@ import numpy as np
 from ..errors import FdlcError
 
 ROLES = ("R", "G", "B", "W", "GFP")
+FLUOROPHORES = {"R": "mNeptune2.5", "G": "CyOFP1.5", "B": "mTagBFP2", "W": "TagRFP-T", "GFP": "GCaMP6s"}
 # Files above this size are wrapped lazily (dask) instead of read into memory.
 LAZY_BYTES = 1 << 30
 
@@ -80,6 +81,10 @@ class Stack:
             raise ImageError(
                 f"{self.source}: {len(self.channel_roles)} channel roles for {self.data.shape[0]} channels"
             )
+        unknown = [r for r in self.channel_roles if r is not None and r not in ROLES]
+        if unknown:
+            raise ImageError(f"{self.source}: unknown channel role {unknown[0]!r} (use {', '.join(ROLES)} or None)")
+        _check_unique_roles(self.channel_roles, self.source)
         if self.channel_names is None:
             self.channel_names = [r or f"channel {i}" for i, r in enumerate(self.channel_roles)]
 
@@ -437,7 +442,7 @@ def read_tiff(
         with _tifffile_log() as problems:
             try:  # both read every page's header: a damaged file fails here, in many ways
                 _check_tiff_complete(tif, series, source)
-                voxel, names = _tiff_metadata(tif)
+                voxel, names, roles = _tiff_metadata(tif)
             except ImageError:
                 raise
             except Exception as exc:
@@ -472,7 +477,7 @@ def read_tiff(
                 f"{source}: the TIFF does not say its axes (shape {tuple(data.shape)}); "
                 f"give them, e.g. --axes {example} (axes='{example}')"
             )
-    return finish_stack(data, file_axes, source, voxel, names, voxel_size, channels, time=time)
+    return finish_stack(data, file_axes, source, voxel, names, voxel_size, channels, roles=roles, time=time)
 
 
 @contextmanager
@@ -570,9 +575,10 @@ def _to_um(value, unit) -> float | None:
     return None if factor is None else value * factor
 
 
-def _ome_channel_names(xml: str) -> list[str | None] | None:
-    """The first image's channel names (Name, else Fluor) as the file writes them: xml2dict would
-    turn a name like '488' or 'NaN' into a number."""
+def _ome_channels(xml: str) -> tuple[list[str | None] | None, list[str | None] | None]:
+    """The first image's channel names (Name, else Fluor) as the file writes them (xml2dict would
+    turn a name like '488' or 'NaN' into a number), and the roles their fluorophores (Fluor)
+    give, None when none does: what write_tiff records of a stack's roles."""
     from xml.etree import ElementTree
 
     def children(element, tag):
@@ -582,13 +588,15 @@ def _ome_channel_names(xml: str) -> list[str | None] | None:
         image = children(ElementTree.fromstring(xml), "Image")[0]
         channels = children(children(image, "Pixels")[0], "Channel")
     except (ElementTree.ParseError, IndexError):
-        return None
+        return None, None
     names = [c.get("Name") or c.get("Fluor") for c in channels]
-    return names if any(names) else None
+    roles = [role_from_name(c.get("Fluor")) for c in channels]
+    return names if any(names) else None, roles if any(roles) else None
 
 
-def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None]:
-    """Voxel size (Z, Y, X µm, None where unknown) and channel names from OME or ImageJ metadata."""
+def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None, list[str | None] | None]:
+    """Voxel size (Z, Y, X µm, None where unknown), channel names and the roles the file types
+    (OME's Fluor) from OME or ImageJ metadata."""
     import tifffile
 
     if tif.is_ome and tif.ome_metadata:
@@ -603,8 +611,8 @@ def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None]:
                 _to_um(pixels.get(f"PhysicalSize{a}"), pixels.get(f"PhysicalSize{a}Unit")) if f"PhysicalSize{a}" in pixels else None
                 for a in "ZYX"
             ]
-            names = _ome_channel_names(tif.ome_metadata)
-            return voxel, names
+            names, roles = _ome_channels(tif.ome_metadata)
+            return voxel, names, roles
     if tif.is_imagej and tif.imagej_metadata is not None:
         meta = tif.imagej_metadata
         unit = meta.get("unit")
@@ -627,8 +635,8 @@ def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None]:
         n_c = int(meta.get("channels", 1) or 1)
         if isinstance(labels, list) and n_c > 1 and len(labels) >= n_c:
             names = list(labels[:n_c])  # ImageJ stores one label per plane, channel fastest
-        return [z, y, x], names
-    return None, None
+        return [z, y, x], names, None
+    return None, None, None
 
 
 # ----- ND2 -----------------------------------------------------------------------------------
@@ -736,7 +744,8 @@ def write_tiff(
             "PhysicalSizeZ": z, "PhysicalSizeZUnit": "µm",
             "PhysicalSizeY": y, "PhysicalSizeYUnit": "µm",
             "PhysicalSizeX": x, "PhysicalSizeXUnit": "µm",
-            "Channel": {"Name": names},
+            # each channel's role as its fluorophore (OME's Fluor): read back whatever its name
+            "Channel": {"Name": names, "Fluor": [FLUOROPHORES.get(r, "") for r in stack.channel_roles]},
         }
         tifffile.imwrite(buffer, data, ome=True, metadata=metadata, compression=compression)
     else:
