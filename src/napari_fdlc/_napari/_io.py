@@ -22,7 +22,7 @@ import pandas as pd
 
 from ..errors import FdlcError, warn, warnings_to
 from ..review import ReviewSession, find_session
-from ._layers import META_KEY, _short_name, review_points, stack_layers, table_points
+from ._layers import META_KEY, _short_name, moved_in_viewer, review_points, stack_layers, table_points
 
 STACK_SUFFIXES = (".tif", ".tiff", ".ome.tif", ".ome.tiff", ".nwb", ".nd2")
 RESULT_SUFFIX = " neuron IDs"
@@ -76,7 +76,7 @@ def read_stack_layers(path) -> list[tuple]:
             if neurons is not None:
                 layers.append(neurons)
     # Auto-label names a recording's first time point: its session is restored alike
-    restored = restored_session_layer(series.source, tuple(series.data.shape[-3:]))
+    restored = restored_session_layer(series.source, tuple(series.data.shape[-3:]), voxel_zyx=series.voxel_size_zyx)
     if restored is not None:
         layers.append(restored)
     return layers
@@ -102,9 +102,10 @@ def _nwb_neurons(path: str, stack):
     return table_points(table, stack.voxel_size_zyx, name=f"{_short_name(path)} neurons")
 
 
-def restored_session_layer(image_key: str, shape_zyx=None, default_name: str | None = None):
+def restored_session_layer(image_key: str, shape_zyx=None, default_name: str | None = None, voxel_zyx=None):
     """The neuron-ID layer of a saved review session of ``image_key`` (None when there is none
-    or it does not fit the image), under the name it was saved with (else ``default_name``)."""
+    or it does not fit the image: its shape or voxel size), under the name it was saved with
+    (else ``default_name``)."""
     path = find_session(image_key)
     if path is None:
         return None
@@ -116,6 +117,11 @@ def restored_session_layer(image_key: str, shape_zyx=None, default_name: str | N
     saved_shape = session.settings.get("image_shape")
     if shape_zyx is not None and saved_shape is not None and list(saved_shape) != list(shape_zyx):
         _warn_in_napari(f"{path}: saved for an image of shape {saved_shape}, not {list(shape_zyx)}; not restored")
+        return None
+    saved_voxel = session.voxel_size_zyx
+    if voxel_zyx is not None and saved_voxel is not None and not np.allclose(saved_voxel, voxel_zyx, rtol=1e-6):
+        # its neurons, in µm, would lie on other voxels of the image
+        _warn_in_napari(f"{path}: saved for voxels of {tuple(saved_voxel)} µm, not {tuple(voxel_zyx)}; not restored")
         return None
     name = session.settings.get("layer_name") or default_name or f"{_short_name(image_key)}{RESULT_SUFFIX}"
     return review_points(session, name, {"session": str(path), "image": image_key})
@@ -134,7 +140,10 @@ def get_table_reader(path):
             head = "".join(fh.readline() for _ in range(12))
     except OSError:
         return None
-    first = head.splitlines()[0] if head else ""
+    lines = head.splitlines()
+    if lines and lines[0].strip().lower().startswith("sep="):  # Excel's separator line, skipped by the reader
+        lines = lines[1:]
+    first = lines[0] if lines else ""
     header = [h.strip() for h in next(csv.reader([first]), [])]  # quoted names too (R's write.csv)
     ours = all(c in header for c in ("x_um", "y_um", "z_um"))
     neuropal = "User ID," in head and "Real X (um)" in head
@@ -198,6 +207,17 @@ def _per_axis(values, dims: int, missing: float) -> np.ndarray:
     return np.concatenate([np.full(dims - len(v), missing), v])
 
 
+def _times_of_frames(frames: np.ndarray, t: pd.Series) -> list:
+    """Each point's time: the one read for the points of its frame (a point added by hand holds
+    none, or napari's copy of the last point's); else its frame."""
+    known: dict[float, object] = {}
+    numeric = pd.to_numeric(t, errors="coerce")
+    for frame, value, raw in zip(frames, numeric, t):
+        if np.isfinite(value):
+            known.setdefault(frame, raw)  # the points read come first; those added by hand after them
+    return [known.get(frame, int(frame) if float(frame).is_integer() else frame) for frame in frames]
+
+
 def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     """npe2 writer: a Points layer as a neuron-ID CSV (``x_um, y_um, z_um`` in the world frame,
     the layer's features, and ``x_px, y_px, z_px`` voxel coordinates when the layer is scaled).
@@ -211,6 +231,9 @@ def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     if len(data) == 0:
         raise FdlcError(f"{path}: the layer has no points to save")
     dims = data.shape[1]
+    if moved_in_viewer(attributes.get("rotate"), attributes.get("shear"), attributes.get("affine")):
+        raise FdlcError(f"{path}: the layer is rotated, sheared or moved by an affine transform in the viewer, and a "
+                        "neuron table is in the image's axes; reset its transform (layer.affine = identity) first")
     scale = _per_axis(attributes.get("scale"), dims, 1.0)
     translate = _per_axis(attributes.get("translate"), dims, 0.0)
     world = data * scale + translate
@@ -226,6 +249,8 @@ def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     data = data[:, -3:]
     feats = pd.DataFrame(feats) if feats is not None else pd.DataFrame(index=range(len(df)))
     feats = feats.reset_index(drop=True)
+    if has_t and dims >= 4:
+        feats["t"] = _times_of_frames(world[:, -4], feats["t"])
     if "label" not in feats.columns and "name" in feats.columns:  # the Track widget's points name their neurons so
         feats = feats.rename(columns={"name": "label"})
     for c in [c for c in COLOUR_CHANNELS if c in feats.columns] + ["label"]:
@@ -259,7 +284,8 @@ def make_sample_data() -> list[tuple]:
     layers = stack_layers(stack, name=SAMPLE_NAME)
     truth.source = "sample neurons"
     layers.append(table_points(truth, stack.voxel_size_zyx, name="sample neurons (truth)", visible=False))
-    restored = restored_session_layer(stack.source, stack.shape_zyx, default_name=f"{SAMPLE_NAME}{RESULT_SUFFIX}")
+    restored = restored_session_layer(stack.source, stack.shape_zyx, default_name=f"{SAMPLE_NAME}{RESULT_SUFFIX}",
+                                      voxel_zyx=stack.voxel_size_zyx)
     if restored is not None:
         layers.append(restored)
     return layers

@@ -94,8 +94,8 @@ def layer_role(layer, roles=("R", "G", "B", "W")) -> str | None:
     """The channel role of an image layer among ``roles``: from napari-fdlc's metadata, a
     ``[R]``-style tag or a fluorophore in its name, else its colormap."""
     meta = (layer.metadata or {}).get(META_KEY) or {}
-    if meta.get("role") in roles:
-        return meta["role"]
+    if "role" in meta:  # napari-fdlc read it: its role (None, GFP: no colour, not W) is known, whatever its colour
+        return meta["role"] if meta["role"] in roles else None
     name = layer.name
     if name.endswith("]") and "[" in name:
         tag = name[name.rindex("[") + 1 : -1].strip().upper()
@@ -207,8 +207,24 @@ def point_size(scale) -> float:
     return POINT_SIZE_UM / float(np.mean(np.asarray(scale)[-2:]))
 
 
+def moved_in_viewer(rotate, shear, affine) -> bool:
+    """Whether a layer is rotated, sheared or moved by an affine transform in the viewer (its
+    positions then are not the image's: napari-fdlc reads scale and translate only)."""
+    def matrix(value) -> np.ndarray:
+        return np.atleast_1d(np.asarray(getattr(value, "affine_matrix", value), dtype=float))
+
+    def identity(value) -> bool:
+        m = matrix(value)
+        return value is None or np.allclose(m, np.eye(len(m)) if m.ndim == 2 else 0.0)
+
+    return not (identity(rotate) and identity(shear) and identity(affine))
+
+
 def layer_xyz_um(layer) -> np.ndarray:
     """Positions of a Points layer in µm (world coordinates), x, y, z."""
+    if moved_in_viewer(layer.rotate, layer.shear, layer.affine):
+        raise FdlcError(f"layer '{layer.name}' is rotated, sheared or moved by an affine transform in the viewer; "
+                        "reset its transform first (napari-fdlc reads its scale and translate)")
     data = np.asarray(layer.data, dtype=float)
     if data.ndim != 2 or data.shape[1] < 3:
         raise FdlcError(f"layer '{layer.name}': neurons need 3D points (z, y, x); this layer has {data.shape[1] if data.ndim == 2 else 0} dimensions")
@@ -226,7 +242,9 @@ def _plain_features(df: pd.DataFrame) -> pd.DataFrame:
     out = pd.DataFrame(index=range(len(df)))
     for c in df.columns:
         col = df[c]
-        if pd.api.types.is_numeric_dtype(col) and not pd.api.types.is_bool_dtype(col):
+        if pd.api.types.is_integer_dtype(col) and c == "t":  # timestamps in ns exceed float64's 2**53
+            out[str(c)] = col.to_numpy(dtype=np.int64)
+        elif pd.api.types.is_numeric_dtype(col) and not pd.api.types.is_bool_dtype(col):
             out[str(c)] = col.to_numpy(dtype=float, na_value=np.nan)
         elif pd.api.types.is_bool_dtype(col):
             out[str(c)] = col.to_numpy(dtype=bool)
@@ -239,6 +257,8 @@ def _blank(column: pd.Series):
     """What a point added by hand holds in a feature column: nothing read (NaN, '', False)."""
     if pd.api.types.is_bool_dtype(column):
         return False
+    if pd.api.types.is_integer_dtype(column):  # whole-number times (ns): NaN would make them floats;
+        return int(column.iloc[0]) if len(column) else 0  # the writer takes a point's time from its frame
     return np.nan if pd.api.types.is_numeric_dtype(column) else ""
 
 

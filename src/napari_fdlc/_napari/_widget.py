@@ -528,7 +528,8 @@ class AutoLabelWidget(QWidget):
             meta = (layer.metadata or {}).get(META_KEY) or {}
             if _is_points(layer) and meta.get("image") == key and meta.get("session"):
                 return
-        restored = restored_session_layer(key, tuple(image_layer.data.shape[-3:]))
+        restored = restored_session_layer(key, tuple(image_layer.data.shape[-3:]),
+                                          voxel_zyx=tuple(float(v) for v in image_layer.scale[-3:]))
         if restored is not None:
             data, kwargs, _ = restored
             layer = self.viewer.add_points(data, **kwargs)  # inserted -> adopted

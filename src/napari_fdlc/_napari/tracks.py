@@ -100,8 +100,11 @@ def track_layers(result, sequence, name: str = "sequence", frames: list[int] | N
     placed = {"scale": (time_axis[0], 1.0, 1.0, 1.0), "translate": (time_axis[1], 0.0, 0.0, 0.0)}
     tracks = (data, {"name": f"{name} tracks", "tail_length": 10, "blending": "translucent",
                      "axis_labels": ("t", "z", "y", "x"), "metadata": meta, **placed}, "tracks")
+    # a point added by hand is no track's (napari would copy the last point's track and name);
+    # the writer takes its time from its frame
+    defaults = {"t": sequence.times[0], "track_id": -1, "track_conf": np.nan, "name": ""}
     pts = (np.vstack(points), {
-        "name": f"{name} neurons", "features": feats, "size": 3.0, "face_color": colours,
+        "name": f"{name} neurons", "features": feats, "feature_defaults": defaults, "size": 3.0, "face_color": colours,
         "border_color": "white", "border_width": 0.05, "out_of_slice_display": False,
         "text": {"string": text, "size": 8, "color": "white", "anchor": "upper_left"},
         "axis_labels": ("t", "z", "y", "x"), "metadata": meta, **placed,
