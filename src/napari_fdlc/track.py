@@ -16,7 +16,8 @@ before it. With ``placement="geometry"`` (default) the warp is carried by a chea
 reference by the one-to-one assignment on distance, refit, a few rounds (ICP-like). The chain
 does not depend on the model's answers, so the model then sees a whole chunk of ``chunk``
 volumes as one batch, and the result does not depend on the chunk size. A volume where fewer
-than ``lost_fraction`` of the neurons pair up (a jump) gets the full search again and the
+than ``lost_fraction`` of the neurons pair up, or whose tracking-model match rate falls below
+``research_ratio`` of the first volume's (a jump) gets the full search again and the
 chain restarts from it. Placed volumes go through the *tracking model* (``follow_with``:
 the small model trained on exactly these placements, ``train.tracking_example``; the full
 searches use the identification model). Its log-probabilities (plus colour) are fused with a
@@ -62,7 +63,7 @@ class TrackSettings:
     refine_steps: int = 0  # model passes per volume after the first, each re-placed by its own warp
     chunk: int = 16  # volumes that go through the model as one batch
     lost_fraction: float = 0.5  # placement "geometry": full search again when fewer neurons than this pair up
-    research_ratio: float = 0.5  # placement "model": full search again when the match rate < this × the first volume's
+    research_ratio: float = 0.5  # full search again when the match rate < this × the first volume's
     use_colour: bool = True
     # Whether the model that follows takes the volumes' colours as an input too (the colour
     # likelihood is fused either way). Off: colours read from each volume of a recording vary
@@ -332,7 +333,7 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
             searched[i] = True
         if ref.warp is None and first:
             ref.warp = found[first[0]]["warp"]
-        if ref.first_rate is None and s.placement == "model" and first:
+        if ref.first_rate is None and first:
             # the yardstick for "lost" below, from the model that answers those volumes
             ref.first_rate = _match_rate(_placed(follower, ref, [chunk[first[0]]], [ref.warp], s)[0][0])
     for i in range(len(chunk)):
@@ -365,6 +366,24 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
         own = s.refine_steps > 0 or s.placement == "model"
         for i, out in zip(rest, outs):
             found[i] = _finish(follower, ref, chunk[i], out, s, fit=own and (i == last or s.refine_steps > 0))
+        if s.placement == "geometry":
+            # A jump the geometric chain still pairs up (in a dense head a wrong placement pairs
+            # most neurons with some neighbour: a 45° turn, a 10 µm shift) shows in the model's
+            # match rate: that volume is searched in full, and the chain goes on from it.
+            for k, i in enumerate(rest):
+                if searched[i] or found[i]["rate"] >= s.research_ratio * ref.first_rate:
+                    continue
+                again = _finish(identifier, ref, chunk[i], _full_search(identifier, ref, [chunk[i]], s)[0], s)
+                if again["rate"] <= found[i]["rate"]:
+                    continue
+                found[i], searched[i], chain = again, True, again["warp"]
+                later = rest[k + 1:]
+                warps = []
+                for j in later:
+                    chain = _geometric_step(ref, chunk[j], chain, s)
+                    warps.append(chain)
+                for j, out in zip(later, _placed(follower, ref, [chunk[j] for j in later], warps, s)):
+                    found[j] = _finish(follower, ref, chunk[j], out, s, fit=own and (j == last or s.refine_steps > 0))
         if s.placement == "model":
             lost = [i for i in rest if found[i]["rate"] < s.research_ratio * ref.first_rate]
             for i, out in zip(lost, _full_search(identifier, ref, [chunk[i] for i in lost], s)):
