@@ -278,3 +278,7 @@ def test_join_by_time_and_track_settings_refuse_what_they_would_misread(worm, ge
     for bad in ({"chunk": 2.5}, {"refine_steps": 1.5}):
         with pytest.raises(FdlcError, match="whole number"):
             track(gentle[0], settings=TrackSettings(**bad))
+    # NaN was ignored and a negative warp width changed the tracks, silently
+    for bad in ({"lost_fraction": float("nan")}, {"warp_sigma_um": -5.0}, {"gate_um": -1.0}, {"position_sigma_um": float("nan")}):
+        with pytest.raises(FdlcError, match=next(iter(bad))):
+            track(gentle[0], settings=TrackSettings(**bad))

@@ -97,10 +97,22 @@ class TrackSettings:
             raise FdlcError(f"unknown search '{self.search}' (use propagate or full)")
         if self.combine not in ("best", "mean"):
             raise FdlcError(f"unknown combine '{self.combine}' (use best or mean)")
-        for name, least in (("refine_steps", 0), ("chunk", 1)):
+        for name, least in (("refine_steps", 0), ("chunk", 1), ("geometry_iterations", 0)):
             value = getattr(self, name)
             if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < least:
                 raise FdlcError(f"{name.replace('_', ' ')} must be a whole number of at least {least} (got {value!r})")
+        # NaN or a negative width passed before: NaN was ignored, -5 µm changed the tracks silently
+        ranges = {"lost_fraction": (0, 1), "research_ratio": (0, 1), "warp_min_prob": (0, 1),
+                  "warp_sigma_um": (0, np.inf), "warp_smoothness": (0, np.inf), "position_sigma_um": (0, np.inf)}
+        for name, (low, high) in ranges.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not low <= value <= high \
+                    or not np.isfinite(value):
+                raise FdlcError(f"{name} must be a number from {low} to {high:g} (got {value!r})")
+        for name in ("gate_um", "no_match_weight"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not 0 < value < np.inf:
+                raise FdlcError(f"{name} must be a positive number (got {value!r})")
         if self.placement not in ("geometry", "model"):
             raise FdlcError(f"unknown placement '{self.placement}' (use geometry or model)")
         if self.follow_with not in ("tracking", "full"):
