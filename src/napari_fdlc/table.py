@@ -11,7 +11,6 @@ from __future__ import annotations
 import csv
 import io
 import os
-import sys
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -315,15 +314,9 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
 
 
 def _csv_records(text: str):
-    """The rows of CSV ``text``, with no limit on a cell's length (pandas has none: a long note
-    in a column of its own is a cell, not an error)."""
-    limit = sys.maxsize
-    while True:  # the largest the platform's C long holds
-        try:
-            csv.field_size_limit(limit)
-            break
-        except OverflowError:
-            limit //= 2
+    """The rows of CSV ``text``, with no practical limit on a cell's length (pandas has none: a
+    long note in a column of its own is a cell, not an error; 2**31 - 1 fits every C long)."""
+    csv.field_size_limit(2**31 - 1)
     return csv.reader(io.StringIO(text))
 
 
