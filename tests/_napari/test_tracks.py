@@ -435,3 +435,27 @@ def test_a_refused_second_run_does_not_outlive_the_job(track_widget, tmp_path):
     assert widget.run() is None
     assert widget.wait(timeout=120)
     assert len(viewer.layers) == 2 and widget.last_error is None, widget.last_error
+
+
+def test_cancel_stops_the_job_and_keeps_the_layers(track_widget, recording):
+    """Cancel (enabled only while a job runs) stops segmenting/tracking at the next volume: no
+    layer added or replaced, no error, and the next run works. There was no way to stop a long
+    recording's job."""
+    from napari_fdlc._napari._io import read_stack_layers
+
+    viewer, widget = track_widget
+    path, _, _ = recording
+    for data, kwargs, kind in read_stack_layers(str(path)):
+        getattr(viewer, f"add_{kind}")(data, **kwargs)
+    before = list(viewer.layers)
+    assert not widget.cancel_button.isEnabled()
+    widget.run(wait=False)
+    assert widget.cancel_button.isEnabled()
+    widget.cancel_button.click()  # the worker is still segmenting its first time point
+    assert widget.wait(timeout=120)
+    assert widget.cancelled and widget.last_error is None
+    assert list(viewer.layers) == before
+    assert "cancelled" in widget.status.text() and widget.progress_bar.value() < 100
+    assert not widget.cancel_button.isEnabled()
+    tracks, points = widget.run()  # a cancel does not carry over to the next job
+    assert not widget.cancelled and set(np.unique(points.data[:, 0])) == {0, 1, 2}

@@ -24,6 +24,7 @@ Scripting::
     w.set_sequence("recording.csv"); w.set_reference("labelled_t0.csv")
     w.run()                               # returns when the layers are in (wait=False: at once)
     w.set_recording("recording.ome.tif")  # or the image layers of a recording (its file or layer name)
+    w.run(wait=False); w.cancel()         # Cancel: stops after the current volume (w.cancelled)
 """
 
 from __future__ import annotations
@@ -60,6 +61,10 @@ RECORDING_ROLES = ("R", "G", "B", "W", "GFP")
 
 if TYPE_CHECKING:  # pragma: no cover
     import napari
+
+
+class _Cancelled(Exception):
+    """Raised in the worker at its next volume when the user cancels (not an error)."""
 
 
 class _Signals(QObject):
@@ -152,6 +157,8 @@ class TrackWidget(QWidget):
         self._shown: dict[str, list] = {}  # each input's layers (its image key, or its sequence file)
         self._worker = None
         self._busy = False
+        self._cancel = threading.Event()  # set by Cancel; the running job stops at its next volume
+        self.cancelled = False  # the last job was cancelled
         self._signals = _Signals()
         self._signals.progress.connect(self._on_progress)
         self._build_ui()
@@ -202,7 +209,14 @@ class TrackWidget(QWidget):
         layout.addLayout(form)
         self.run_button = QPushButton("Track")
         self.run_button.clicked.connect(lambda: self.run(wait=False))
-        layout.addWidget(self.run_button)
+        self.cancel_button = QPushButton("Cancel")
+        self.cancel_button.setToolTip("stop after the volume being segmented or tracked; the layers shown stay")
+        self.cancel_button.setEnabled(False)
+        self.cancel_button.clicked.connect(self.cancel)
+        buttons = QHBoxLayout()
+        buttons.addWidget(self.run_button)
+        buttons.addWidget(self.cancel_button)
+        layout.addLayout(buttons)
         self.progress_bar = QProgressBar()
         self.progress_bar.setRange(0, 100)
         self.progress_bar.setValue(0)
@@ -315,6 +329,8 @@ class TrackWidget(QWidget):
             notify_warning("a tracking job is still running")
             return None
         self.last_error = None
+        self.cancelled = False
+        cancel = self._cancel = threading.Event()  # this job's own: a late Cancel cannot stop the next
         sequence_path = self.sequence_edit.text().strip()
         reference_path = self.reference_edit.text().strip()
         use_colour = self.colour_check.isChecked()
@@ -336,6 +352,11 @@ class TrackWidget(QWidget):
 
         warned: list[str] = []  # what the readers warn about, shown when the job ends
 
+        def report(doing: str, done: int, total: int) -> None:  # in the worker, after each volume
+            if cancel.is_set():
+                raise _Cancelled
+            signals.progress.emit(doing, done, total)
+
         def job():
             from ..table import read_volume, warn_implausible_scales
             from ..track import Sequence, TrackSettings, read_sequence, track
@@ -346,7 +367,7 @@ class TrackWidget(QWidget):
 
                 recording = stack_from_layers(channels, key, recording=True)
                 tables = segment_series(recording, diameter,
-                                        progress=lambda done, total: signals.progress.emit("segmenting", done, total))
+                                        progress=lambda done, total: report("segmenting", done, total))
                 frames = found_time_points(tables, recording.source, "check the nucleus diameter and the voxel size")
                 sequence = Sequence([tables[t] for t in frames], frames, [""] * len(frames))
             else:
@@ -362,8 +383,9 @@ class TrackWidget(QWidget):
                 from ..identify import default_identifier
 
                 ident = default_identifier()
+            report("tracking", 0, len(sequence))
             result = track(sequence, references, ident, TrackSettings(use_colour=use_colour),
-                           progress=lambda done, total: signals.progress.emit("tracking", done, total))
+                           progress=lambda done, total: report("tracking", done, total))
             return sequence, result, frames
 
         @thread_worker(start_thread=False, ignore_errors=True)
@@ -386,8 +408,15 @@ class TrackWidget(QWidget):
         worker.start()
         if wait:
             self.wait()
-            return None if self.last_error else self.layers
+            return None if self.last_error or self.cancelled else self.layers
         return worker
+
+    def cancel(self) -> None:
+        """Stop the running job after the volume it is on (segmenting or tracking); the layers
+        already shown stay as they were."""
+        if self._busy:
+            self._cancel.set()
+            self.status.setText("cancelling…")
 
     def wait(self, timeout: float | None = None) -> bool:
         """Process GUI events until the running job is done; True when idle."""
@@ -420,7 +449,10 @@ class TrackWidget(QWidget):
             notify_warning(f"{name}: no neuron could be tracked (shown untracked); check the reference")
 
     def _on_error(self, exc: Exception) -> None:
-        if isinstance(exc, FdlcError):
+        if isinstance(exc, _Cancelled):
+            self.cancelled = True
+            self.status.setText("cancelled; the layers shown are unchanged")
+        elif isinstance(exc, FdlcError):
             self._error(str(exc))
         else:
             self._error(f"unexpected error ({type(exc).__name__}: {exc})")
@@ -438,10 +470,11 @@ class TrackWidget(QWidget):
     def _set_busy(self, busy: bool) -> None:
         self._busy = busy
         self.run_button.setEnabled(not busy)
+        self.cancel_button.setEnabled(busy)
         if busy:
             self.progress_bar.setValue(0)
             self.status.setText("tracking…")
-        elif self.last_error is None:
+        elif self.last_error is None and not self.cancelled:
             self.progress_bar.setValue(100)
         if not busy:
             self._worker = None
