@@ -433,7 +433,8 @@ class ReviewSession:
     # ----- listeners and persistence ------------------------------------------------------------
     def connect(self, listener: Listener) -> None:
         """``listener(kind, rows)`` is called after every change; kind is 'edit', 'labelling',
-        'threshold', 'structure', 'current' or 'save_error' (rows None = all rows)."""
+        'threshold', 'structure', 'current', 'save_error' or 'save_moved' (autosaved to the user's
+        folder from now on: ``path`` says where) (rows None = all rows)."""
         self._listeners.append(listener)
 
     def disconnect(self, listener: Listener) -> None:
@@ -470,6 +471,7 @@ class ReviewSession:
                     warn(f"{self.path.parent}: not writable ({exc.strerror}); session saved to {fallback}")
                     self.path = fallback
                     self.last_save_error = None
+                    self._emit("save_moved", None)  # napari says where: its users do not see stderr
                     return True
                 except OSError:
                     pass

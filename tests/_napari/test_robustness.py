@@ -10,6 +10,7 @@ import json
 import shutil
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -717,3 +718,35 @@ def test_a_damaged_session_file_does_not_stop_the_image_from_opening(make_napari
     path.write_text(json.dumps(saved))
     layers = make_napari_viewer().open(stack_path, plugin="napari-fdlc")
     assert sum(type(lyr).__name__ == "Image" for lyr in layers) == 4
+
+
+@pytest.mark.parametrize("when", ["at its first save", "after an edit"])
+def test_a_session_moved_to_the_user_folder_is_said_in_napari(make_napari_viewer, sample_files, identifier, templates,
+                                                             tmp_path, monkeypatch, when):
+    """When the image's folder stops taking the session (read-only remount, disk full), the
+    session goes on in the user's folder and napari says where (it was said on stderr only, so a
+    napari user did not know where the annotations went)."""
+    import errno
+
+    from napari.utils.notifications import notification_manager
+
+    from napari_fdlc.review import ReviewSession
+
+    stack_path, beside = _label_a_copy_of_the_sample(make_napari_viewer(), sample_files, identifier, templates, tmp_path)
+    save = ReviewSession.save
+
+    def read_only(self, path=None):
+        if path is not None and Path(path).parent == tmp_path:
+            raise OSError(errno.EROFS, "Read-only file system")
+        return save(self, path)
+
+    before = len(notification_manager.records)
+    widget = _auto_label_widget(make_napari_viewer(), stack_path, identifier, templates)
+    if when == "at its first save":
+        monkeypatch.setattr(ReviewSession, "save", read_only)
+    widget.auto_label()
+    monkeypatch.setattr(ReviewSession, "save", read_only)
+    widget.accept(int(np.flatnonzero(np.asarray(widget.session.auto_id) != "")[1]))
+    moved = widget.session.path
+    assert moved != beside and moved.is_file()
+    assert any(str(moved) in m for m in _notifications_since(before)), _notifications_since(before)

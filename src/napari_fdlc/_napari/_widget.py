@@ -977,6 +977,8 @@ class AutoLabelWidget(QWidget):
             self.viewer.layers[source_name].visible = False
         if session.last_save_error:
             self._notify_warning(session.last_save_error)
+        elif session.path != path:  # its first save already went to the user's folder
+            self._on_session("save_moved", None)
 
     # =========================================================================================
     # session <-> layer
@@ -1044,6 +1046,9 @@ class AutoLabelWidget(QWidget):
     def _on_session(self, kind: str, rows) -> None:
         if kind == "save_error":
             self._notify_warning(self.session.last_save_error or "the session could not be saved")
+            return
+        if kind == "save_moved":
+            self._notify_warning(f"the image's folder is no longer writable; the session is saved to {self.session.path}")
             return
         if kind == "current":
             if not self._guard:
