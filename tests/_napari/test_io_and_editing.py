@@ -730,3 +730,47 @@ def test_a_sequence_with_timestamps_in_ns_keeps_its_times_through_napari(make_na
     assert sorted(set(saved["t"])) == [str(t) for t in times], f"times written: {sorted(set(saved['t']))}"
     (again,) = viewer.open(str(out), plugin="napari-fdlc")
     assert again.data.shape == (8, 4), f"the saved file reopens as {again.data.shape}: its time points merged"
+
+
+def test_an_uncalibrated_stack_opens_in_pixels_and_its_voxel_size_is_set_in_the_widget(make_napari_viewer, sample_files,
+                                                                                      identifier, templates, tmp_path):
+    """A TIFF that does not say its voxel size used to be refused, with advice for the command
+    line (--voxel-size) that a napari user cannot follow. It now opens in pixels, said; Auto-label
+    refuses it until the voxel size is set in the widget (every channel's scale), then labels it;
+    the file opened again takes the voxel size from its saved session."""
+    import tifffile
+    from napari.utils.notifications import notification_manager
+
+    from napari_fdlc.io.images import read_stack
+
+    sample = read_stack(sample_files[0])
+    path = tmp_path / "uncalibrated.tif"
+    tifffile.imwrite(path, np.asarray(sample.data)[None].transpose(0, 2, 1, 3, 4), imagej=True,
+                     metadata={"axes": "TZCYX", "Labels": list(sample.channel_roles)})
+    viewer = make_napari_viewer()
+    before = len(notification_manager.records)
+    images = viewer.open(str(path), plugin="napari-fdlc")
+    said = [str(r.message) for r in notification_manager.records[before:]]
+    assert len(images) == 4 and all(tuple(layer.scale) == (1, 1, 1) for layer in images)
+    assert any("does not say the voxel size" in m and "Voxel size" in m for m in said), said
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    assert widget.voxel_edit.text() == "" and "not in the file" in widget.voxel_edit.placeholderText()
+    assert widget.auto_label() is None
+    assert "does not say the voxel size" in widget.last_error and "Voxel size" in widget.last_error
+    widget.voxel_edit.setText("oops")
+    widget._gui(widget._on_voxel_entered)  # said, nothing changed
+    assert all(tuple(layer.scale) == (1, 1, 1) for layer in images)
+    widget.voxel_edit.setText(" ".join(f"{v:g}" for v in sample.voxel_size_zyx))
+    widget._gui(widget._on_voxel_entered)
+    assert all(np.allclose(layer.scale, sample.voxel_size_zyx) for layer in images)
+    layer = widget.auto_label()
+    assert layer is not None and widget.last_error is None, widget.last_error
+    assert np.allclose(widget.session.voxel_size_zyx, sample.voxel_size_zyx)
+    with pytest.raises(FdlcError, match="move them off their nuclei"):  # its neurons are placed
+        widget.set_voxel_size(1, 1, 1)
+
+    again = make_napari_viewer().open(str(path), plugin="napari-fdlc")
+    assert all(np.allclose(layer.scale, sample.voxel_size_zyx) for layer in again)
+    assert [type(layer).__name__ for layer in again] == ["Image"] * 4 + ["Points"]  # the session restored

@@ -2,7 +2,8 @@
 
 - stacks (TIFF / OME-TIFF / NWB / ND2) open as R/G/B/W additive channels with the voxel scale;
   an NWB file's annotated neurons come along as a Points layer, and a saved review session of
-  the image comes back as its neuron-ID layer;
+  the image comes back as its neuron-ID layer; a stack that does not say its voxel size opens
+  in pixels (the widget's Voxel size row sets it), or with its saved session's;
 - neuron tables (our CSV, NeuroPAL_ID CSV) open as one Points layer;
 - the writer saves a Points layer as a neuron-ID CSV (µm and voxel coordinates + features);
 - the sample is the bundled synthetic NeuroPAL head with its neuron table.
@@ -14,6 +15,7 @@ napari shows it as a notification.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import os
 from pathlib import Path
 
@@ -62,15 +64,29 @@ def get_stack_reader(path):
 def read_stack_layers(path) -> list[tuple]:
     """A stack's channels as image layers (a recording's as t, z, y, x layers), with the
     annotated neurons of an NWB file and a saved Auto-label session."""
-    from ..io.images import Stack, read_series
+    from ..io.images import Stack, VoxelSizeUnknown, read_series
 
     p = _one_path(path)
-    series = read_series(p)
+    unknown = False
+    try:
+        series = read_series(p)
+    except VoxelSizeUnknown as exc:  # shown in pixels (the axes the file does say in µm) until set
+        unknown = True
+        series = read_series(p, voxel_size=[1.0 if v is None else v for v in exc.known])
+        saved = _saved_voxel_size(series.source)
+        if saved is not None:  # set for this image before: its session holds it
+            unknown = False
+            series = dataclasses.replace(series, voxel_size_zyx=saved)
+            warn(f"{p}: the file does not say the voxel size; {' × '.join(f'{v:g}' for v in saved)} µm "
+                 "(z, y, x) taken from its saved session")
+        else:
+            warn(f"{p}: the file does not say the voxel size; shown in pixels: set it (µm) in Auto-label's "
+                 "Voxel size row before labelling or tracking")
     if len(series) > 1:
-        layers = stack_layers(series)
+        layers = stack_layers(series, voxel_unknown=unknown)
     else:
         stack = Stack(series.data[0], series.voxel_size_zyx, series.channel_roles, series.source, series.channel_names)
-        layers = stack_layers(stack)
+        layers = stack_layers(stack, voxel_unknown=unknown)
         if p.lower().endswith(".nwb"):
             neurons = _nwb_neurons(p, stack)
             if neurons is not None:
@@ -80,6 +96,16 @@ def read_stack_layers(path) -> list[tuple]:
     if restored is not None:
         layers.append(restored)
     return layers
+
+
+def _saved_voxel_size(image_key: str) -> tuple | None:
+    """The voxel size of the saved review session of ``image_key`` (None without one)."""
+    path = find_session(image_key)
+    try:
+        voxel = ReviewSession.load(path).voxel_size_zyx if path is not None else None
+    except FdlcError:
+        return None  # said when the session itself is restored
+    return tuple(float(v) for v in voxel) if voxel is not None else None
 
 
 def _nwb_neurons(path: str, stack):

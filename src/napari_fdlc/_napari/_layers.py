@@ -58,10 +58,12 @@ def contrast_limits(channel) -> tuple[float, float]:
     return (lo, hi)
 
 
-def stack_layers(stack, name: str | None = None, source_key: str | None = None) -> list[tuple]:
+def stack_layers(stack, name: str | None = None, source_key: str | None = None, voxel_unknown: bool = False) -> list[tuple]:
     """One image layer per channel: R/G/B/W colormaps, additive, gamma 0.7, µm scale. A
     recording (:class:`~napari_fdlc.io.images.StackSeries`) gives t, z, y, x layers (time in
-    volumes, scale 1), which the Track widget segments and tracks."""
+    volumes, scale 1), which the Track widget segments and tracks. With ``voxel_unknown`` (the
+    file does not say it) the stack's voxel size is a stand-in, refused by
+    :func:`stack_from_layers` until the layers' scale is set (Auto-label's *Voxel size*)."""
     base = name or _short_name(stack.source)
     key = source_key or stack.source
     recording = stack.data.ndim == 5
@@ -80,10 +82,18 @@ def stack_layers(stack, name: str | None = None, source_key: str | None = None) 
             # the pan-neuronal W is in every nucleus: at half opacity the colour code stays readable
             "opacity": 0.5 if role == "W" else 1.0,
             "axis_labels": ("t",) * recording + ("z", "y", "x"),
-            "metadata": {META_KEY: {"image": key, "role": role, "channel_name": label, "stack_name": base}},
+            "metadata": {META_KEY: {"image": key, "role": role, "channel_name": label, "stack_name": base,
+                                    **({"voxel_stand_in": list(stack.voxel_size_zyx)} if voxel_unknown else {})}},
         }
         layers.append((channel, kwargs, "image"))
     return layers
+
+
+def voxel_unknown(layer) -> bool:
+    """True while an image layer's scale is still the stand-in its reader gave for a voxel size
+    the file does not say (set since, in the widget or napari's console: known)."""
+    stand_in = ((layer.metadata or {}).get(META_KEY) or {}).get("voxel_stand_in")
+    return stand_in is not None and np.allclose(np.asarray(layer.scale[-3:], dtype=float), stand_in)
 
 
 def is_image_layer(layer) -> bool:
@@ -132,6 +142,10 @@ def stack_from_layers(images: dict, source: str, recording: bool = False):
     scales = {tuple(np.round(np.asarray(layer.scale[-3:], dtype=float), 9)) for layer in layers}
     if len(scales) != 1:
         raise FdlcError("the chosen channels have different voxel sizes (layer scale); choose channels of one stack")
+    for layer in layers:
+        if voxel_unknown(layer):
+            raise FdlcError(f"'{layer.name}': its file does not say the voxel size; set it (µm) in Auto-label's "
+                            "Voxel size row first")
     # Neurons are found and their colours read in the stack's own voxels, from 0: a layer moved
     # in the viewer would put the points, and the colours read under other points, off by that.
     for layer in layers:

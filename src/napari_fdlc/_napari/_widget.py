@@ -86,6 +86,7 @@ from ._layers import (
     review_points,
     stack_from_layers,
     table_from_layer,
+    voxel_unknown,
 )
 from ._warm_up import start_warm_up
 
@@ -235,6 +236,16 @@ class AutoLabelWidget(QWidget):
         self.diameter_spin.setValue(3.0)
         self.diameter_spin.setSuffix(" µm")
         form.addRow("Nucleus diameter", self.diameter_spin)
+        self.voxel_edit = QLineEdit()
+        self.voxel_edit.setToolTip("the chosen image's voxel size z, y, x in µm (its layers' scale): set it\n"
+                                   "when the file does not say it, or says it wrong")
+        self.voxel_edit.returnPressed.connect(lambda: self._gui(self._on_voxel_entered))
+        voxel_button = QPushButton("Set")
+        voxel_button.clicked.connect(lambda: self._gui(self._on_voxel_entered))
+        voxel_row = QHBoxLayout()
+        voxel_row.addWidget(self.voxel_edit)
+        voxel_row.addWidget(voxel_button)
+        form.addRow("Voxel size", voxel_row)
         layout.addWidget(box)
 
         box = QGroupBox("Template")
@@ -564,6 +575,7 @@ class AutoLabelWidget(QWidget):
             fallback = (current if current in texts and current != FROM_FILE and not current.startswith("layer: ")
                         else SCRIPTED if self._script_templates is not None else BUILTIN)
             _choose(self.template_combo, chosen, fallback)
+        self._show_voxel_size()
 
     def _on_role_activated(self, role: str) -> None:
         """The user chose a channel's layer, or turned the channel off."""
@@ -571,6 +583,24 @@ class AutoLabelWidget(QWidget):
             self._roles_off.add(role)
         else:
             self._roles_off.discard(role)
+        self._show_voxel_size()
+
+    def _show_voxel_size(self) -> None:
+        images = self._chosen_images()
+        layer = images.get("W") or next(iter(images.values()), None)
+        unknown = layer is not None and voxel_unknown(layer)
+        self.voxel_edit.setText("" if layer is None or unknown else " ".join(f"{v:g}" for v in layer.scale[-3:]))
+        self.voxel_edit.setPlaceholderText("not in the file: z y x (µm)" if unknown else "z y x (µm)")
+
+    def _on_voxel_entered(self) -> None:
+        text = self.voxel_edit.text().replace(",", " ").replace("×", " ").split()
+        try:
+            values = [float(v) for v in text]
+        except ValueError:
+            values = []
+        if len(values) != 3:
+            raise FdlcError(f"voxel size '{self.voxel_edit.text()}': give three numbers z y x in µm")
+        self.set_voxel_size(*values)
 
     def _on_template_activated(self, index: int) -> None:
         if self.template_combo.itemText(index) != FROM_FILE:
@@ -631,6 +661,26 @@ class AutoLabelWidget(QWidget):
                 raise FdlcError(f"no image layer named '{name}'")
             self.role_combos[role].setCurrentText(name)
             self._on_role_activated(role)
+
+    def set_voxel_size(self, z: float, y: float, x: float) -> None:
+        """Set the chosen image's voxel size (µm): the scale of every layer of its file, e.g. when
+        the file does not say it (shown in pixels until then)."""
+        values = np.array([z, y, x], dtype=float)
+        if not (np.all(np.isfinite(values)) and np.all(values > 0)):
+            raise FdlcError(f"voxel size {z} {y} {x}: give three positive numbers z y x in µm")
+        images = self._chosen_images()
+        if not images:
+            raise FdlcError("no image chosen: pick its channel layers first, then set the voxel size")
+        key = image_key_of(images.get("W") or next(iter(images.values())))
+        for layer in self.viewer.layers:
+            meta = (layer.metadata or {}).get(META_KEY) or {}
+            if _is_points(layer) and meta.get("session") and meta.get("image") == key:
+                raise FdlcError(f"'{layer.name}' holds this image's neurons, placed at its voxel size: a new one would "
+                                "move them off their nuclei")
+        for layer in self.viewer.layers:
+            if is_image_layer(layer) and image_key_of(layer) == key:
+                layer.scale = (*layer.scale[:-3], *values)
+        self._show_voxel_size()
 
     def set_neurons(self, source) -> None:
         """Where neurons come from: ``'segment'`` or a Points layer (or its name)."""

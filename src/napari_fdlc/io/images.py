@@ -58,6 +58,15 @@ class ImageError(FdlcError, ValueError):
     """An image file (or image parameters) that cannot be used."""
 
 
+class VoxelSizeUnknown(ImageError):
+    """The file does not say its voxel size (or not on every axis); ``known`` holds what it
+    says, z, y, x in µm (None where it is silent)."""
+
+    def __init__(self, message: str, known: tuple):
+        super().__init__(message)
+        self.known = known
+
+
 @dataclass
 class Stack:
     """One 3D multichannel volume.
@@ -383,9 +392,10 @@ def finish_stack(
             missing = "" if voxel_size_zyx is None else " ".join(
                 a for a, v in zip("ZYX", voxel_size_zyx) if v is None
             )
-            raise ImageError(
+            raise VoxelSizeUnknown(
                 f"{source}: the file does not say the voxel size{' in ' + missing if missing else ''}; "
-                "give it in µm as --voxel-size Z Y X (voxel_size=(z, y, x))"
+                "give it in µm as --voxel-size Z Y X (voxel_size=(z, y, x))",
+                tuple(voxel_size_zyx) if voxel_size_zyx is not None else (None, None, None),
             )
         voxel = _check_voxel_size(voxel_size_zyx, source)
 
