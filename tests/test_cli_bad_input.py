@@ -282,3 +282,15 @@ def test_out_to_a_pipe_or_through_a_link_writes_the_file_it_names(tmp_path, smal
     link.symlink_to(target)
     assert run("segment", stack, "--quiet", "--out", link) == 0
     assert link.is_symlink() and target.read_text().startswith("x_um")
+
+
+def test_a_test_whose_neurons_all_lie_at_one_point_is_refused(tmp_path, capsys):
+    """Neurons all at one point (a failed export's 0, 0, 0) lie in every plane: refused as a
+    flat test (exit 2, nothing written). The flatness limit scales with the span, 0 here, and
+    `0 < 0` let it through: a name for every neuron."""
+    test = tmp_path / "zeros.csv"
+    pd.DataFrame({"x_um": [0.0] * 20, "y_um": [0.0] * 20, "z_um": [0.0] * 20}).to_csv(test, index=False)
+    out = tmp_path / "ids.csv"
+    rc = run("label", test, "--no-color", "--out", out)
+    err = capsys.readouterr().err
+    assert rc == 2 and not out.exists(), (rc, err)

@@ -8,7 +8,7 @@ import pytest
 from napari_fdlc.cli import main
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.evaluate import Scores, coverage_curve, expected_calibration_error, mirrored_relative_to
-from napari_fdlc.match import make_labelling
+from napari_fdlc.match import Labelling, make_labelling
 from napari_fdlc.reference import atlas_worm, generate_worm, load_atlas
 from napari_fdlc.table import NeuronTable
 
@@ -90,3 +90,37 @@ def test_baseline_labelling_against_an_unnamed_template_is_one_line():
     template = NeuronTable(worm.xyz, worm.colours, source="unnamed.csv")
     with pytest.raises(FdlcError, match="unnamed.csv"):
         baseline_labelling(floor_match, generate_worm(seed=2), [template], False)
+
+
+def _scored_pair():
+    """A test of two named neurons, A and B, both names in the vocabulary. The answer names the
+    first A (right, auto_conf 0.6) and leaves the second without a name, its auto_conf 0.95: the
+    model is 95 % sure it has no named match, which is wrong (it is B)."""
+    test = NeuronTable(np.array([[0.0, 0, 0], [5.0, 0, 0]]), labels=np.array(["A", "B"], dtype=object))
+    probs = np.array([[0.6, 0.0], [0.0, 0.05]])
+    result = Labelling(["A", "B"], probs, ["A", ""], np.array([0.6, 0.95]))
+    scores = Scores()
+    scores.add(result, test, {"A", "B"})
+    return scores, result
+
+
+def test_calibration_error_is_that_of_auto_conf_including_unnamed_neurons():
+    """The ECE is that of `auto_conf` as the contract gives it: for a neuron left unnamed, the
+    probability of no named match, wrong when its truth is named: here mean(|0.6 - 1|,
+    |0.95 - 0|) = 0.675. A stand-in confidence 0 made such a confident "no match" perfectly
+    calibrated (ECE 0.2; seen on corpus pairs at auto_conf up to 1.0)."""
+    scores, _ = _scored_pair()
+    assert np.isclose(scores.summary()["ece"], 0.675), scores.summary()["ece"]
+
+
+def test_coverage_at_threshold_zero_counts_only_neurons_given_a_name():
+    """The coverage curve keeps what the slider shows (Labelling.thresholded): at threshold 0
+    the named neuron only, 50 % coverage at 100 % accuracy. It counted the unnamed neuron as a
+    label kept (100 % at 50 %)."""
+    scores, result = _scored_pair()
+    shown = result.thresholded(0.0)
+    expected_coverage = np.mean([bool(s) for s in shown])  # 0.5
+    curve = {t: (cov, acc) for t, cov, acc in coverage_curve(np.asarray(scores.conf), np.asarray(scores.correct, float),
+                                                                 scores.named)}
+    coverage, accuracy = curve[0.0]
+    assert np.isclose(coverage, expected_coverage) and np.isclose(accuracy, 1.0), (coverage, accuracy)

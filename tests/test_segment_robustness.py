@@ -16,7 +16,9 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
+from napari_fdlc.cli import main
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.io.images import Stack, write_tiff
 from napari_fdlc.render import random_worm, render_stack
@@ -248,3 +250,67 @@ def test_colours_of_a_finely_sampled_stack_read_a_bounded_number_of_voxels(small
     stack, truth = small
     colours = measure_colours(stack, truth.xyz)
     assert all(np.isfinite(v).all() for v in colours.values())
+
+
+def _one_nucleus(radius_um: float, peak: float, shape=(16, 96, 96), noise: str = "poisson", seed: int = 0):
+    """One ball nucleus at the centre, blurred by a NeuroPAL-like PSF (0.7 µm in z, 0.15 in x/y)."""
+    z, y, x = np.ogrid[: shape[0], : shape[1], : shape[2]]
+    c = [s // 2 for s in shape]
+    r = np.sqrt(((z - c[0]) * VOX[0]) ** 2 + ((y - c[1]) * VOX[1]) ** 2 + ((x - c[2]) * VOX[2]) ** 2)
+    blob = ndimage.gaussian_filter((r <= radius_um).astype(float), (0.7 / VOX[0], 0.15 / VOX[1], 0.15 / VOX[2]))
+    blob /= blob.max()
+    rng = np.random.default_rng(seed)
+    if noise == "poisson":
+        return rng.poisson(100 + peak * blob).astype(float)
+    return 100 + peak * blob + rng.normal(0, 1, shape)
+
+
+def test_a_threshold_above_500_noise_sds_is_accepted_as_documented():
+    """Every threshold up to 1000 noise SDs is taken: the finer scale runs at twice the
+    threshold and checked that against the user's limit, so 500-1000 was refused once a nucleus
+    was found, naming a value the user never gave."""
+    volume = _one_nucleus(1.5, 10000, shape=(16, 128, 128), noise="gauss")
+    stack = Stack(volume[None].astype(np.float32), VOX, ["W"])
+    assert len(segment_stack(stack, threshold=400)) == 1
+    found = segment_stack(stack, threshold=600)
+    assert len(found) == 1
+
+
+@pytest.mark.parametrize("radius_um, over", [(1.5, 5.0), (2.0, 3.0)], ids=["3um-5x", "4um-3x"])
+def test_a_saturated_nucleus_is_one_nucleus(radius_um, over):
+    """A W nucleus clipped by a 12-bit camera (core 3-5x over range) is one nucleus, as
+    unclipped: its flat top band-passes to a ring, whose maxima were kept as 2-3 nuclei."""
+    vox_peak = 3995 * over
+    plain = _one_nucleus(radius_um, vox_peak)
+    assert len(segment_stack(Stack(plain[None], VOX, ["W"]))) == 1  # not saturated: one
+    clipped = np.minimum(plain, 4095).astype(np.uint16)
+    found = segment_stack(Stack(clipped[None], VOX, ["W"]))
+    assert len(found) == 1, np.round(found.xyz, 2).tolist()
+
+
+def test_unmixed_colours_do_not_depend_on_the_gain_of_the_w_channel(small):
+    """R and G after the bleed-through removal do not depend on W's gain (W 20x dimmer): the
+    slope was bounded to 1 in counts, so part of W's bleed stayed in R (z-scores off by 0.2)."""
+    stack, truth = small
+    data = np.asarray(stack.data).astype(np.float32)
+    ref = measure_colours(Stack(data, VOX, stack.channel_roles), truth.xyz)
+    dim_w = data.copy()
+    dim_w[3] *= 0.05
+    got = measure_colours(Stack(dim_w, VOX, stack.channel_roles), truth.xyz)
+    np.testing.assert_allclose(got["W"], ref["W"], atol=1e-4)  # W itself: z-scored, unchanged
+    np.testing.assert_allclose(got["R"], ref["R"], atol=1e-2)
+    np.testing.assert_allclose(got["G"], ref["G"], atol=1e-2)
+
+
+def test_cli_segment_does_not_find_nuclei_in_a_channel_given_as_ignored(tmp_path, small, capsys):
+    """`--channels GFP -` leaves nothing to find nuclei in: exit 2, one line. Nuclei were
+    found in the channel given as '-' (taken as of unknown role)."""
+    stack, _ = small
+    data = np.asarray(stack.data)
+    path = tmp_path / "two.ome.tif"
+    write_tiff(path, Stack(data[[3, 0]], VOX, [None, None]))
+    out = tmp_path / "neurons.csv"
+    code = main(["segment", str(path), "--channels", "GFP", "-", "--quiet", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and "no channel to find nuclei in" in err, (code, err)
+    assert not out.exists()

@@ -1,10 +1,15 @@
+import math
+
 import numpy as np
+import pandas as pd
 import pytest
 
+from napari_fdlc.cli import main
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.geometry import canonical_frame
+from napari_fdlc.reference import generate_worm
 from napari_fdlc.simulate import SimulationParams, simulate_worm
-from napari_fdlc.table import NeuronTable
+from napari_fdlc.table import NeuronTable, write_table
 
 
 def test_correspondence_is_known(worm):
@@ -58,3 +63,102 @@ def test_simulate_refuses_empty_or_non_finite_tables(what):
     with pytest.raises(FdlcError) as exc:
         simulate_worm(table, 0)
     assert "\n" not in str(exc.value)
+
+
+def _proper(source, synth) -> bool:
+    """Whether the real neurons of ``synth`` are a proper (not mirrored) copy of ``source``'s."""
+    real = synth.origin >= 0
+    a = source.xyz[synth.origin[real]]
+    b = synth.table.xyz[real]
+    u, _, vt = np.linalg.svd((b - b.mean(0)).T @ (a - a.mean(0)))
+    return np.linalg.det(u @ vt) > 0
+
+
+def test_a_scale_parameter_of_one_or_more_never_gives_a_mirror_image():
+    """A scale of 1 or more is refused: an axis factor 1 ± 1.5 can be negative, and a third of
+    the copies came out mirror images (L/R-swapped training pairs)."""
+    worm = generate_worm(seed=1)
+    params = SimulationParams(scale=1.5, max_spurious=0)
+    try:
+        copies = [simulate_worm(worm, seed, params) for seed in range(20)]
+    except FdlcError:
+        return
+    mirrored = [seed for seed, synth in enumerate(copies) if not _proper(worm, synth)]
+    assert mirrored == [], f"mirror-image copies at seeds {mirrored}"
+
+
+@pytest.mark.parametrize("bad", [
+    {"noise_um": -0.1},  # numpy: ValueError 'scale < 0'
+    {"max_spurious": -1},  # numpy: ValueError 'high <= 0'
+    {"drop_fraction": (0.3, 0.1)},  # numpy: ValueError 'high - low < 0'
+    {"noise_um": math.nan},  # accepted: every position NaN
+    {"flip_side_probability": 2.0},  # accepted: not a probability
+])
+def test_simulation_parameters_out_of_range_are_refused_in_one_line(bad):
+    """Each parameter is checked (one FdlcError line); these reached numpy's ValueError or
+    passed silently (noise NaN: every position NaN)."""
+    worm = generate_worm(seed=1)
+    with pytest.raises(FdlcError) as exc:
+        simulate_worm(worm, 0, SimulationParams(**bad))
+    assert "\n" not in str(exc.value)
+
+
+def test_fdlc_simulate_warns_about_a_table_that_is_not_in_micrometres(tmp_path, capsys):
+    """A table in nm gets the units warning, as in fdlc label / track (the recipe's magnitudes
+    are µm); it was simulated silently, the bend winding it round a circle many times."""
+    worm = generate_worm(seed=1)
+    df = worm.to_dataframe()
+    for c in ("x_um", "y_um", "z_um"):
+        df[c] = df[c] * 1000.0
+    src = tmp_path / "nm.csv"
+    write_table(df, src)
+    assert main(["simulate", str(src), "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "µm" in err, f"no unit warning on stderr: {err!r}"
+
+
+def _source_with_extras(tmp_path):
+    worm = generate_worm(seed=1)
+    df = worm.to_dataframe()
+    df["GFP"] = np.arange(len(df)) * 1.5 + 100.0
+    df["cell_id"] = [f"c{i}" for i in range(len(df))]
+    df["B"] = df["B"].astype(object)
+    df.loc[3, "B"] = ""  # no reading of this neuron's B
+    path = tmp_path / "src.csv"
+    df.to_csv(path, index=False)
+    return path, df
+
+
+def test_fdlc_simulate_keeps_the_other_columns_of_each_real_neuron(tmp_path):
+    """Each real neuron's other columns go with it into its copies (neuron_table.md: other
+    columns are kept); they were dropped."""
+    path, df = _source_with_extras(tmp_path)
+    assert main(["simulate", str(path), "--out", str(tmp_path / "out")]) == 0
+    out = pd.read_csv(tmp_path / "out" / "src_syn0.csv", keep_default_na=False, dtype=str)
+    assert {"GFP", "cell_id"} <= set(out.columns), f"columns written: {list(out.columns)}"
+    real = out["origin"].astype(int) >= 0
+    origin = out.loc[real, "origin"].astype(int).to_numpy()
+    assert (out.loc[real, "cell_id"].to_numpy() == df["cell_id"].to_numpy()[origin]).all()
+
+
+def test_fdlc_simulate_does_not_invent_a_colour_reading_for_an_empty_cell(tmp_path):
+    """A colour cell empty in the source (no reading) stays empty in the copies; the reader's
+    stand-in median was written as if measured."""
+    path, _ = _source_with_extras(tmp_path)
+    assert main(["simulate", str(path), "--out", str(tmp_path / "out")]) == 0
+    out = pd.read_csv(tmp_path / "out" / "src_syn0.csv", keep_default_na=False, dtype=str)
+    row = out[out["origin"] == "3"]
+    assert len(row) == 1, "pick a seed that keeps neuron 3"
+    assert row["B"].iloc[0].strip() == "", f"B of the neuron without a reading written as {row['B'].iloc[0]!r}"
+
+
+def test_fdlc_simulate_writes_nothing_when_one_output_cannot_be_written(tmp_path, capsys):
+    """Every output is checked before the first is written: with src_syn1.csv a folder,
+    src_syn0.csv was written first, and the error named the hidden temporary file."""
+    path, _ = _source_with_extras(tmp_path)
+    out = tmp_path / "out"
+    (out / "src_syn1.csv").mkdir(parents=True)
+    assert main(["simulate", str(path), "--out", str(out), "--count", "3"]) == 2
+    err = capsys.readouterr().err
+    assert not (out / "src_syn0.csv").exists(), "a half-done run left src_syn0.csv behind"
+    assert ".tmp" not in err and "src_syn1.csv" in err, err

@@ -105,8 +105,7 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
                 scores.add(result, test, set(template.names), time.perf_counter() - t0)
             rows.append((lab, *key, scores.summary()))
             if key[1] == "fdlc":
-                calib.setdefault(key[2], Scores()).correct.extend(scores.correct)
-                calib[key[2]].conf.extend(scores.conf)
+                calib.setdefault(key[2], Scores()).merge(scores)
             _log(f"{lab} {key}: {rows[-1][-1]}")
         if panel_worms_per_lab <= 0:
             continue
@@ -173,7 +172,7 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
     lines.append("|---|---|---|---|")
     for inp, s in calib.items():
         conf, correct = np.asarray(s.conf), np.asarray(s.correct, float)
-        for t, cov, acc in coverage_curve(conf, correct):
+        for t, cov, acc in coverage_curve(conf, correct, s.named):
             lines.append(f"| {inp} | {t:.2f} | {100 * cov:.1f} | {100 * acc:.1f} |")
     report = "\n".join(lines)
     if out is not None:

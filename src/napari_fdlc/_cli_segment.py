@@ -61,6 +61,10 @@ def segment_recording(args: argparse.Namespace, path: str, prog: str, check=None
 
     check_detection_options(args.diameter_um, args.threshold, names=("--diameter-um", "--threshold"))
     series = read_series(path, voxel_size=args.voxel_size, channels=args.channels, axes=args.axes)
+    if args.channels and all(role in (None, "GFP") for role in series.channel_roles):
+        # every channel said: '-' (not used) is not a channel of unknown role to fall back on
+        raise FdlcError(f"--channels {' '.join(args.channels)}: no channel to find nuclei in (GFP is activity, not "
+                        "nuclei); give the W (pan-neuronal) channel's role, or the colour channels'")
     if check is not None:
         check(series)
     z, y, x = series.shape_zyx

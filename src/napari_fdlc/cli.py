@@ -79,7 +79,7 @@ def _run_simulate(args) -> int:
     import numpy as np
 
     from .simulate import simulate_worm
-    from .table import read_volume, write_table
+    from .table import COLOUR_CHANNELS, read_volume, warn_implausible_scales, write_table
 
     if args.count < 1:
         raise FdlcError("--count must be at least 1")
@@ -91,12 +91,22 @@ def _run_simulate(args) -> int:
     if out.exists() and not out.is_dir():
         raise FdlcError(f"{out}: --out must be a folder (it receives <stem>_synN.csv), not a file")
     table = read_volume(args.table, "give one time point (one worm) to simulate from")
+    warn_implausible_scales([table])  # the recipe's magnitudes are in µm
+    # Every output checked before the first is written: nothing is written unless all can be.
+    paths = [check_output(out / f"{Path(args.table).stem}_syn{k}.csv", [args.table], create_folder=True)
+             for k in range(args.count)]
+    # A colour cell left empty in the source (no reading) stays empty in its copies: the reader
+    # fills it with the volume's median, which would pass for a measurement.
+    unread = {c: (table.text[c].str.strip() == "").to_numpy() for c in COLOUR_CHANNELS
+              if c in table.colours and table.text is not None and c in table.text}
     rng = np.random.default_rng(args.seed)
-    for k in range(args.count):
+    for path in paths:
         synth = simulate_worm(table, rng)
         df = synth.table.to_dataframe()
         df["origin"] = synth.origin
-        path = out / f"{Path(args.table).stem}_syn{k}.csv"
+        real = synth.origin >= 0
+        for c, empty in unread.items():
+            df.loc[real & empty[np.maximum(synth.origin, 0)], c] = np.nan
         write_table(df, path)
         print(path)
     return 0

@@ -24,7 +24,11 @@ from .table import NeuronTable, check_named
 class Scores:
     correct: list = field(default_factory=list)  # top-1 hit per scored neuron
     top3: list = field(default_factory=list)
-    conf: list = field(default_factory=list)  # auto_conf of the assignment made
+    # auto_conf as the contract gives it: of the name, or for a neuron left unnamed of "no named
+    # match" — wrong for a scored neuron (its truth is named), however sure; a stand-in 0 made
+    # a confident wrong "no match" count as perfectly calibrated
+    conf: list = field(default_factory=list)
+    named: list = field(default_factory=list)  # a name given (the slider shows only these)
     seconds: list = field(default_factory=list)  # per test volume
 
     def add(self, result: Labelling, test: NeuronTable, vocabulary: set[str], seconds: float | None = None) -> None:
@@ -33,9 +37,14 @@ class Scores:
             if truth and truth in vocabulary:
                 self.correct.append(result.auto_id[j] == truth)
                 self.top3.append(truth in cand[j])
-                self.conf.append(result.auto_conf[j] if result.auto_id[j] else 0.0)
+                self.conf.append(float(result.auto_conf[j]))
+                self.named.append(bool(result.auto_id[j]))
         if seconds is not None:
             self.seconds.append(seconds)
+
+    def merge(self, other: "Scores") -> None:
+        for name in ("correct", "top3", "conf", "named", "seconds"):
+            getattr(self, name).extend(getattr(other, name))
 
     def summary(self) -> dict:
         c = np.asarray(self.correct, float)
@@ -74,13 +83,16 @@ def _bin_of(conf: np.ndarray, bins: int) -> np.ndarray:
     return np.clip(np.floor(np.asarray(conf, float) * bins).astype(int), 0, bins - 1)
 
 
-def coverage_curve(conf: np.ndarray, correct: np.ndarray, thresholds=(0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 0.99)):
-    """(threshold, coverage, accuracy of the labels kept) for the confidence slider."""
+def coverage_curve(conf: np.ndarray, correct: np.ndarray, named: np.ndarray | None = None,
+                   thresholds=(0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 0.99)):
+    """(threshold, coverage, accuracy of the labels kept) for the confidence slider: a label is
+    kept when a name was given (``named``; default all) at ``auto_conf`` ≥ the threshold."""
     out = []
     if len(conf) == 0:  # nothing scored (a lab of one worm has no pair)
         return [(t, float("nan"), float("nan")) for t in thresholds]
+    named = np.ones(len(conf), bool) if named is None else np.asarray(named, bool)
     for t in thresholds:
-        kept = conf >= t
+        kept = named & (conf >= t)
         out.append((t, float(kept.mean()), float(correct[kept].mean()) if kept.any() else float("nan")))
     return out
 

@@ -124,7 +124,8 @@ def refuse_flat(xyz: np.ndarray, source: str, min_neurons: int) -> None:
     if len(xyz) < min_neurons:
         return
     span = float(np.ptp(xyz, axis=0).max())
-    if (depth := thickness_um(xyz)) < FLAT_UM * min(1.0, span / HEAD_SPAN_UM):
+    # ``<=``: neurons all at one point (a failed export's 0, 0, 0) lie in every plane
+    if (depth := thickness_um(xyz)) <= FLAT_UM * min(1.0, span / HEAD_SPAN_UM):
         raise FdlcError(f"{source or 'the test'}: the neurons lie in a plane ({depth:.2f} µm thick), so left "
                         "cannot be told from right; a 3D table is needed (check the z positions and the voxel size in z)")
 

@@ -53,6 +53,7 @@ from .table import NeuronTable, positions
 
 Progress = Callable[[float, str], None]
 MAX_DIAMETER_UM = 20.0  # a nucleus diameter beyond this is not a nucleus (neurons' are 2-4 µm)
+SATURATED_MIN_VOXELS = 8  # voxels at the volume's maximum that make a clipped plateau
 MAX_THRESHOLD = 1000.0  # noise SDs: nuclei stand 10-100 SDs above the noise; beyond this, nothing
 # Below it noise maxima pass as nuclei, more of them than a worm has neurons, and slowly: the
 # bundled sample (151 nuclei) gives 159 at 2 SDs, 6521 at 1.5 and 16508 at 0.5 (in 84 s).
@@ -184,6 +185,27 @@ def detect_nuclei(
     :func:`_band_pass` at this diameter when the caller has it already.
     """
     check_detection_options(diameter_um, threshold)
+    return _detect_nuclei(volume, voxel_size_zyx, diameter_um, threshold, min_relative, min_distance_um, progress,
+                          sigma_fraction, saddle, merge_distance_um, valley_sd, fine_scale, band_passed)
+
+
+def _detect_nuclei(
+    volume: np.ndarray,
+    voxel_size_zyx: tuple[float, float, float],
+    diameter_um: float = 3.0,
+    threshold: float = 6.0,
+    min_relative: float = 0.08,
+    min_distance_um: float | None = None,
+    progress: Progress | None = None,
+    sigma_fraction: tuple[float, float] = (0.2, 0.4),
+    saddle: float = 0.9,
+    merge_distance_um: float | None = None,
+    valley_sd: float = 0.0,
+    fine_scale: float | None = FINE_SCALE,
+    band_passed: tuple | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`detect_nuclei` without its options' check: the finer scale runs at twice the
+    threshold, which may pass the largest a user may give."""
     vox = np.asarray(voxel_size_zyx, dtype=float)
     if vox.shape != (3,) or not (np.isfinite(vox).all() and (vox > 0).all()):
         raise ImageError(f"voxel size {tuple(voxel_size_zyx)} (z, y, x µm): give three positive numbers")
@@ -217,6 +239,8 @@ def detect_nuclei(
         saddle, valley_sd * noise,
     )
     zyx, score = zyx[keep], (values[keep] - med) / noise
+    if volume is not None:
+        zyx, score = _one_per_saturated_nucleus(volume, vox, zyx, score, diameter_um)
     if fine_scale:
         # A small, dim nucleus pressed against a brighter one (2.2 µm apart, 2.5x dimmer) is a
         # shoulder at the nominal scale; a finer band-pass separates them. Only strong fine
@@ -224,7 +248,7 @@ def detect_nuclei(
         # nothing: on rendered corpus worms recall rose 0.96 -> 0.98 (0.92 -> 0.95 dense) at
         # realistic noise with precision >= 0.99, and nothing changed at very high noise
         # (docs/segmentation.md).
-        fine, fine_score = detect_nuclei(
+        fine, fine_score = _detect_nuclei(
             volume, voxel_size_zyx, fine_scale * diameter_um, 2 * threshold, min_relative,
             sigma_fraction=sigma_fraction, saddle=saddle, valley_sd=valley_sd, fine_scale=None)
         if len(zyx) and len(fine):
@@ -324,7 +348,7 @@ def split_by_colour(
     w_response, w_factors, med, noise = _band_pass(_bin(stack.channel(w) if w_volume is None else w_volume, factors), bvox, fine)
     typical = np.median(_response_at(w_response, w_factors, bvox, zyx_um - offset)) - med
     passes = [_band_pass(_bin(stack.channel(r), factors), bvox, fine) for r in colour_roles]
-    found = [detect_nuclei(None, bvox, fine, 2 * threshold, min_relative, fine_scale=None, band_passed=bp)[0]
+    found = [_detect_nuclei(None, bvox, fine, 2 * threshold, min_relative, fine_scale=None, band_passed=bp)[0]
              for bp in passes]
     channel_of = np.concatenate([np.full(len(f), k) for k, f in enumerate(found)])
     candidates = np.vstack(found) + offset
@@ -362,6 +386,41 @@ def _parabola_offsets(response: np.ndarray, idx: np.ndarray) -> np.ndarray:
         step = np.where(valid, 0.5 * (f_lo - f_hi) / np.where(valid, denom, -1.0), 0.0)
         offsets[:, axis] = np.clip(step, -0.5, 0.5)
     return offsets
+
+
+def _one_per_saturated_nucleus(volume, vox: np.ndarray, zyx: np.ndarray, score: np.ndarray, diameter_um: float):
+    """Detections on one saturated plateau (voxels at the volume's maximum, a clipped camera)
+    made one, at the plateau's centre: a flat-topped nucleus band-passes to a ring, whose maxima
+    (2.5-3 µm apart) were kept as two or three nuclei. Left alone without a plateau of
+    ``SATURATED_MIN_VOXELS``: an unclipped maximum is a voxel or two."""
+    if len(zyx) < 2:
+        return zyx, score
+    top = np.max(volume)
+    plateau = np.asarray(volume == top)
+    if plateau.sum() < SATURATED_MIN_VOXELS:
+        return zyx, score
+    # The ring's maxima lie just off the plateau: each detection joins the plateau nearest it
+    # within a third of a nucleus (plateaus apart stay apart: two clipped neighbours are two).
+    regions, _ = ndimage.label(plateau, np.ones((3, 3, 3), bool))
+    reach = np.maximum(np.round(diameter_um / 3 / vox), 1).astype(int)
+    region = np.zeros(len(zyx), int)
+    for i, centre in enumerate(np.clip(np.round(zyx / vox).astype(int), 0, np.array(volume.shape) - 1)):
+        low = np.maximum(centre - reach, 0)
+        window = regions[tuple(slice(a, b + 1) for a, b in zip(low, centre + reach))]
+        near = np.argwhere(window > 0)
+        if len(near):
+            distance = np.linalg.norm((near + low) * vox - zyx[i], axis=1)
+            if distance.min() <= diameter_um / 3:
+                region[i] = window[tuple(near[np.argmin(distance)])]
+    shared = [r for r in np.unique(region[region > 0]) if (region == r).sum() > 1]
+    keep = np.ones(len(zyx), bool)
+    zyx, score = zyx.copy(), score.copy()
+    for r, centre in zip(shared, ndimage.center_of_mass(plateau, regions, shared)):
+        on = np.flatnonzero(region == r)
+        first = on[np.argmax(score[on])]
+        zyx[first] = np.asarray(centre) * vox
+        keep[on[on != first]] = False
+    return zyx[keep], score[keep]
 
 
 def _merge_without_valley(
@@ -477,7 +536,7 @@ def measure_colours(
 
 def w_bleed_slopes(raw: dict[str, np.ndarray], quantile: float = 0.1, min_neurons: int = 20) -> dict[str, float]:
     """How much of W (the pan-neuronal marker) R and G picked up, from one volume's
-    background-subtracted readouts: the slope in [0, 1] of the ``quantile`` regression of the
+    background-subtracted readouts: the slope (≥ 0) of the ``quantile`` regression of the
     colour on W (a lower envelope). A NeuroPAL colour is off in most neurons, so their readout
     is a floor plus the bleed, proportional to W; a least-squares fit through all neurons would
     also remove real colour that happens to go with W. The pinball loss is convex in the slope
@@ -499,8 +558,17 @@ def w_bleed_slopes(raw: dict[str, np.ndarray], quantile: float = 0.1, min_neuron
             residual = residual - np.quantile(residual, quantile)
             return float(np.sum(np.maximum(quantile * residual, (quantile - 1.0) * residual)))
 
-        usable = len(w) >= min_neurons and np.ptp(w) > 0
-        slopes[role] = float(minimize_scalar(pinball, bounds=(0.0, 1.0), method="bounded").x) if usable else 0.0
+        if not (len(w) >= min_neurons and np.ptp(w) > 0):
+            slopes[role] = 0.0
+            continue
+        slope = float(minimize_scalar(pinball, bounds=(0.0, 1.0), method="bounded").x)
+        # A bleed fraction of at most 1 holds in light, not in counts: W imaged at a lower gain
+        # than the colour bleeds more than 1 count per W count. Searched further (no slope can
+        # exceed the colour's range over W's) only then, so that every other fit stays as it was.
+        widest = 1.5 * np.ptp(colour) / np.ptp(w)
+        if slope > 1.0 - 1e-3 and widest > 1.0:
+            slope = float(minimize_scalar(pinball, bounds=(0.0, widest), method="bounded").x)
+        slopes[role] = slope
     return slopes
 
 

@@ -44,6 +44,31 @@ class SimulationParams:
     def as_dict(self) -> dict:
         return asdict(self)
 
+    def check(self) -> None:
+        """Refuse (one-line TableError) what would give nonsense: a negative or non-finite
+        magnitude, a drop range outside 0-1, a probability outside 0-1, a scale of 1 or more (an
+        axis scaled by 0 or less: a mirror image)."""
+        values = {name: getattr(self, name) for name in ("bend_curvature", "transverse_rotation", "transverse_shear",
+                                                         "spurious_min_distance_um", "xy_rotation", "scale", "shear",
+                                                         "noise_um", "flip_side_probability")}
+        for name, value in values.items():
+            if not (_is_number(value) and value >= 0):
+                raise TableError(f"simulate: {name} must be a number of 0 or more (got {value!r})")
+        if self.scale >= 1:
+            raise TableError(f"simulate: scale must be below 1 (got {self.scale}): an axis scaled by 1 - scale ≤ 0 "
+                             "would mirror the worm")
+        if self.flip_side_probability > 1:
+            raise TableError(f"simulate: flip_side_probability must be at most 1 (got {self.flip_side_probability})")
+        drop = tuple(self.drop_fraction) if isinstance(self.drop_fraction, (tuple, list)) else ()
+        if len(drop) != 2 or not all(_is_number(v) and 0 <= v <= 1 for v in drop) or drop[0] > drop[1]:
+            raise TableError(f"simulate: drop_fraction must be (low, high) with 0 ≤ low ≤ high ≤ 1 (got {self.drop_fraction!r})")
+        if isinstance(self.max_spurious, bool) or not isinstance(self.max_spurious, (int, np.integer)) or self.max_spurious < 0:
+            raise TableError(f"simulate: max_spurious must be a whole number of 0 or more (got {self.max_spurious!r})")
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and bool(np.isfinite(value))
+
 
 @dataclass
 class SyntheticWorm:
@@ -87,6 +112,7 @@ def simulate_worm(
                                                         "has positions that are not finite numbers"))
     rng = np.random.default_rng(rng)
     p = params or SimulationParams()
+    p.check()
     canon, centre, rotation = canonical_frame(table.xyz)
     # A random curvature; the bending plane mostly in XY (worms crawl on their side).
     pts = bend(canon, rng.uniform(-p.bend_curvature, p.bend_curvature), rng.uniform(-0.3, 0.3))
@@ -133,7 +159,10 @@ def simulate_worm(
         v[real] = values[origin[real]]
         v[~real] = rng.choice(values, (~real).sum()) if (~real).any() else v[~real]
         colours[ch] = v
-    return SyntheticWorm(NeuronTable(pts, colours, labels, conf, source=f"synthetic({table.source})"), origin)
+    extra = None
+    if len(table.extra.columns):  # the real neurons' other columns go with them; empty on spurious ones
+        extra = table.extra.astype(object).reindex(np.where(real, origin, -1)).reset_index(drop=True)
+    return SyntheticWorm(NeuronTable(pts, colours, labels, conf, extra, source=f"synthetic({table.source})"), origin)
 
 
 def _spurious_points(pts: np.ndarray, count: int, min_distance: float, rng) -> np.ndarray:
