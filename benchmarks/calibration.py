@@ -13,7 +13,7 @@ evaluate`` does):
    colour (the lab's first ``--worms`` worms) — beside the temperature the fold fitted on its
    four training labs: whether any one temperature, fitted anywhere, could calibrate every lab;
 2. the panel with colour on the same worms with a share of their neurons dropped at random
-   (seed 0): accuracy and mean confidence, to see whether the confidence follows what a test's
+   (seed 0 and the lab): accuracy and mean confidence, to see whether the confidence follows what a test's
    completeness does to accuracy.
 
 Writes a markdown report.
@@ -66,9 +66,10 @@ def main(argv=None) -> int:
 
     started = time.time()
     worms = load_corpus(None)
-    rng = np.random.default_rng(0)
     temperature_rows, drop_rows = [], []
     for lab in args.labs:
+        # each lab its own draws: its rows do not depend on the labs run before it
+        rng = np.random.default_rng([0, sum(map(ord, lab))])
         weights = Path(args.runs) / f"{args.fold_prefix}_{lab}" / "model"
         if not weights.with_suffix(".json").exists():
             print(f"{lab}: no fold model at {weights}; skipped", file=sys.stderr)

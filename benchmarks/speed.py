@@ -149,12 +149,12 @@ def main(argv=None) -> int:
             f"fdlc full, panel ({len(panel.templates)} templates)": (
                 lambda: ident.label_panel(test, panel).candidates(3),
                 lambda: [ident.label_panel(t, panel).candidates(3) for t in tests[:16]],
-                16,
+                len(tests[:16]),
             ),
             "fdlc panel, handedness set (--chirality same)": (
                 lambda: told.label_panel(test, panel).candidates(3),
                 lambda: [told.label_panel(t, panel).candidates(3) for t in tests[:16]],
-                16,
+                len(tests[:16]),
             ),
             "fdlc track (propagated, chunk 1 / 16)": (
                 lambda: track(sequence, identifier=ident, settings=TrackSettings(chunk=1)),
@@ -189,7 +189,7 @@ def main(argv=None) -> int:
             configs[f"everything but the network, panel ({len(panel.templates)} templates)"] = (
                 lambda: tiny.label_panel(test, panel).candidates(3),
                 lambda: [tiny.label_panel(t, panel).candidates(3) for t in tests[:16]],
-                16,
+                len(tests[:16]),
             )
         for name, (one, many, count) in configs.items():
             row = rows.setdefault(name, {})

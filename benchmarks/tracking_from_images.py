@@ -32,11 +32,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 
 def detection_sources(truth, origin, detected, max_um: float = 1.5) -> np.ndarray:
-    """The source neuron of each detection: that of the nearest true neuron within ``max_um``, else -1."""
-    from scipy.spatial import cKDTree
+    """The source neuron of each detection, matched one-to-one with the true neurons within
+    ``max_um`` (as score_detections matches), else -1: the second detection of a split nucleus
+    is spurious (nearest-neuron matching gave both halves one source, and scored one wrong)."""
+    from scipy.optimize import linear_sum_assignment
+    from scipy.spatial.distance import cdist
 
-    distance, nearest = cKDTree(truth.xyz).query(detected.xyz)
-    return np.where(distance < max_um, origin[nearest], -1)
+    distance = cdist(detected.xyz, truth.xyz)
+    rows, cols = linear_sum_assignment(np.where(distance < max_um, distance, 1e6))
+    sources = np.full(len(detected), -1)
+    close = distance[rows, cols] < max_um
+    sources[rows[close]] = origin[cols[close]]
+    return sources
 
 
 def main(argv=None) -> int:
@@ -94,7 +101,7 @@ def main(argv=None) -> int:
                 print(f"  {name}: {100 * on_images['accuracy']:.1f} % from images, "
                       f"{100 * on_truth['accuracy']:.1f} % from true tables", file=sys.stderr, flush=True)
         for name, s in scores.items():
-            rows.append(f"| {motion:g}× | {name} | {100 * np.mean(s['images']):.1f} % | {100 * np.mean(s['untracked']):.0f} % "
+            rows.append(f"| {motion:g}× | {name} | {100 * np.mean(s['images']):.1f} % | {100 * np.nanmean(s['untracked']):.0f} % "
                         f"| {100 * np.mean(s['truth']):.1f} % | {100 * np.mean(found):.1f} % |")
     print(f"{args.sequences} recordings of {args.frames} volumes per motion, voxel {tuple(args.voxel_size)} µm\n")
     print("| motion | method | accuracy from images | untracked right (images) | accuracy from true tables | nuclei found |")

@@ -415,3 +415,20 @@ def test_a_jump_the_chain_still_pairs_up_is_searched_again(worm):
     for k in range(3, len(volumes)):
         one = TrackResult([result.track_id[k]], [result.confidence[k]], result.names, [])
         assert tracking_accuracy(one, [origins[k]], origins[0])["accuracy"] >= 0.9
+
+
+def _track_result(track_ids):
+    from napari_fdlc.track import TrackResult
+
+    return TrackResult([np.asarray(t) for t in track_ids], [np.ones(len(t)) for t in track_ids], [], [])
+
+
+def test_tracking_accuracy_untracked_right_with_nothing_to_leave_untracked():
+    """'Untracked right' of a recording with nothing to leave untracked is NaN (left out of the
+    benchmarks' means), not 0 % (which read as all wrong and pulled the means down)."""
+    from napari_fdlc.track import tracking_accuracy
+
+    origins = [np.array([0, 1, 2]), np.array([2, 0, 1])]
+    score = tracking_accuracy(_track_result([[0, 1, 2], [2, 0, 1]]), origins, origins[0])
+    assert score["accuracy"] == 1.0
+    assert score["untracked_right"] == 1.0 or np.isnan(score["untracked_right"]), score

@@ -225,7 +225,7 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
     aligned = [None] * len(tables)
     scales = []
     for _ in range(rounds):
-        scales, mirrored = [], []
+        scales, mirrored = [], {}  # mirrored: of each worm aligned, relative to the best-named one
         for k, (t, c) in enumerate(zip(tables, canon)):
             rows = [i for i, n in enumerate(t.labels) if n in mean]
             if len(rows) < 4:
@@ -235,7 +235,7 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
             rot, scale, mu_s, mu_d, _ = _similarity(c[rows], dst, allow_mirror=True)
             aligned[k] = scale * (c - mu_s) @ rot.T + mu_d
             scales.append(scale)
-            mirrored.append(np.linalg.det(rot) < 0)
+            mirrored[k] = bool(np.linalg.det(rot) < 0)
         positions: dict[str, list] = {}
         for t, a in zip(tables, aligned):
             if a is None:
@@ -268,9 +268,7 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
     else:  # no worm with colour: none in the atlas, not a made-up 0 ± 1 (its panel's colours random)
         colour = colour_sd = np.full((len(names), 3), np.nan)
     mean_pos = np.array([p.mean(0) for p in pos])
-    if 2 * sum(mirrored) > len(mirrored):
-        # The atlas has the handedness of most of its worms, not of the best-named one (which only
-        # anchors the alignment): --chirality same / mirrored mean what they say about a lab's worms.
+    if _mostly_mirrored(mirrored, [w.lab for w in worms]):
         mean_pos[:, 2] *= -1
     centre = np.median(mean_pos, axis=0)
     return Atlas(
@@ -284,6 +282,20 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
         labs=tuple(sorted({w.lab for w in worms})),
         worm_scale=float(1.0 / np.median(scales)),
     )
+
+
+def _mostly_mirrored(mirrored: dict[int, bool], labs: list[str]) -> bool:
+    """Whether most labs' worms are mirrored relative to the best-named one (which only anchors
+    the alignment), each lab by most of its worms: the atlas then takes their handedness, so that
+    --chirality same / mirrored say what they mean about a lab's recordings. Counted by lab, not
+    by worm: a lab's mirroring is its recording convention (SF's 33 of 36), and counted by worm
+    SF alone flipped the atlas built without EY (40 of its 76 worms), mirroring every EY worm's
+    names on `auto` (the EY panel 77.6 -> 10.9 %)."""
+    by_lab: dict[str, list[bool]] = {}
+    for k, m in mirrored.items():
+        by_lab.setdefault(labs[k], []).append(m)
+    lab_mirrored = [2 * sum(v) > len(v) for v in by_lab.values()]
+    return 2 * sum(lab_mirrored) > len(lab_mirrored)
 
 
 def atlas_worm(atlas: Atlas, rng: np.random.Generator | None = None, keep_fraction: float | None = None,

@@ -945,6 +945,8 @@ def _known_settings(raw) -> dict:
         del settings["image_shape"]
     if not isinstance(settings.get("layer_name", ""), str):
         del settings["layer_name"]
+    if not isinstance(settings.get("voxel_size_set", False), bool):
+        del settings["voxel_size_set"]
     return settings
 
 

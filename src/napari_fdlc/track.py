@@ -684,7 +684,7 @@ def tracking_accuracy(result: TrackResult, origins: list[np.ndarray], reference_
     """Against the truth of :func:`simulate_sequence` with the reference ``reference_origin``
     (the origin array of the reference volume): ``accuracy`` = fraction of neurons whose true
     partner is in the reference that get its track ID; ``untracked_right`` = fraction of the
-    others (spurious, or missing from the reference) left untracked."""
+    others (spurious, or missing from the reference) left untracked (NaN without any)."""
     where = {o: i for i, o in enumerate(reference_origin) if o >= 0}
     hit = total = free_right = free_total = 0
     for tid, origin in zip(result.track_id, origins):
@@ -694,7 +694,7 @@ def tracking_accuracy(result: TrackResult, origins: list[np.ndarray], reference_
         total += int(has.sum())
         free_right += int((tid[~has] == UNTRACKED).sum())
         free_total += int((~has).sum())
-    return {"accuracy": hit / max(total, 1), "untracked_right": free_right / max(free_total, 1),
+    return {"accuracy": hit / max(total, 1), "untracked_right": free_right / free_total if free_total else float("nan"),
             "neurons": total}
 
 

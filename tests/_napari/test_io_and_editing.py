@@ -774,3 +774,174 @@ def test_an_uncalibrated_stack_opens_in_pixels_and_its_voxel_size_is_set_in_the_
     again = make_napari_viewer().open(str(path), plugin="napari-fdlc")
     assert all(np.allclose(layer.scale, sample.voxel_size_zyx) for layer in again)
     assert [type(layer).__name__ for layer in again] == ["Image"] * 4 + ["Points"]  # the session restored
+
+
+# ----- the Voxel size row -------------------------------------------------------------------------
+
+
+def _sample(sample_files):
+    from napari_fdlc.io.images import read_stack
+
+    return read_stack(sample_files[0])
+
+
+def _auto_label(viewer, identifier, templates):
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    return widget
+
+
+def test_a_voxel_size_set_to_the_readers_stand_in_values_is_still_refused(make_napari_viewer, sample_files,
+                                                                          identifier, templates, tmp_path):
+    """A voxel size set in the row is known, also when it equals the reader's stand-in (an
+    OME-TIFF without z, whose z step is 1 µm): it was told from the stand-in by its values, so
+    '1 0.36 0.36' (or '1 1 1') stayed refused whatever the user did."""
+    import tifffile
+
+    sample = _sample(sample_files)
+    path = tmp_path / "partial.ome.tif"
+    tifffile.imwrite(path, np.asarray(sample.data), ome=True,
+                     metadata={"axes": "CZYX", "PhysicalSizeX": 0.36, "PhysicalSizeY": 0.36,
+                               "Channel": {"Name": list(sample.channel_roles)}})
+    viewer = make_napari_viewer()
+    images = viewer.open(str(path), plugin="napari-fdlc")
+    assert all(np.allclose(layer.scale, (1.0, 0.36, 0.36)) for layer in images)
+    widget = _auto_label(viewer, identifier, templates)
+    widget.voxel_edit.setText("1 0.36 0.36")
+    widget._gui(widget._on_voxel_entered)
+    assert widget.last_error is None, widget.last_error
+    layer = widget.auto_label()
+    assert layer is not None and widget.last_error is None, widget.last_error
+
+
+def test_set_voxel_size_leaves_the_other_chosen_channels_in_pixels(make_napari_viewer, sample_files, identifier,
+                                                                  templates, tmp_path):
+    """One uncalibrated file per channel: Set rescales every chosen channel's file (only W's
+    was, and Auto-label then refused channels of different voxel sizes)."""
+    import tifffile
+
+    sample = _sample(sample_files)
+    data = np.asarray(sample.data)
+    viewer = make_napari_viewer()
+    layers = {}
+    for i, role in enumerate(sample.channel_roles):
+        path = tmp_path / f"worm_{role}.tif"
+        tifffile.imwrite(path, data[i], imagej=True, metadata={"axes": "ZYX"})
+        (layers[role],) = viewer.open(str(path), plugin="napari-fdlc")
+    widget = _auto_label(viewer, identifier, templates)
+    widget.set_channels(**{role: layer.name for role, layer in layers.items()})
+    widget.set_voxel_size(*sample.voxel_size_zyx)
+    assert all(np.allclose(layer.scale, sample.voxel_size_zyx) for layer in layers.values()), \
+        {role: tuple(layer.scale) for role, layer in layers.items()}
+    layer = widget.auto_label()
+    assert layer is not None and widget.last_error is None, widget.last_error
+
+
+def test_a_corrected_voxel_size_and_its_session_are_not_restored_on_reopening(make_napari_viewer, sample_files,
+                                                                            identifier, templates, tmp_path):
+    """A voxel size corrected in the row (the file says 1.2 µm in z) is the one the file opened
+    again takes, from its session, with the session (it opened at 1.2 and the session was
+    refused as saved for other voxels)."""
+    import shutil
+
+    path = tmp_path / "worm.ome.tif"
+    shutil.copy(sample_files[0], path)
+    viewer = make_napari_viewer()
+    viewer.open(str(path), plugin="napari-fdlc")
+    widget = _auto_label(viewer, identifier, templates)
+    widget.set_voxel_size(1.0, 0.36, 0.36)
+    assert widget.auto_label() is not None, widget.last_error
+    row = int(np.flatnonzero(np.asarray(widget.session.auto_id) != "")[0])
+    widget.accept(row)
+
+    again = make_napari_viewer().open(str(path), plugin="napari-fdlc")
+    assert all(np.allclose(layer.scale[-3:], (1.0, 0.36, 0.36)) for layer in again), \
+        [tuple(layer.scale) for layer in again]
+    assert [type(layer).__name__ for layer in again] == ["Image"] * 4 + ["Points"]
+
+
+def test_nwb_neurons_stay_at_the_old_voxel_size_when_it_is_corrected(make_napari_viewer, sample_files, identifier,
+                                                                   templates, tmp_path):
+    """An NWB file's annotated neurons (on its voxels) move with its images when the voxel
+    size is corrected; they stayed at the old scale, off their nuclei."""
+    from napari_fdlc.io.nwb import write_nwb
+    from napari_fdlc.table import NeuronTable
+
+    sample = _sample(sample_files)
+    rng = np.random.default_rng(0)
+    zyx = rng.integers(2, 30, size=(20, 3)) * np.array([1, 3, 8])
+    neurons = NeuronTable(zyx[:, ::-1] * np.asarray(sample.voxel_size_zyx)[::-1], {},
+                          np.array([f"N{i}" for i in range(20)], dtype=object))
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, sample, neurons)
+    viewer = make_napari_viewer()
+    layers = viewer.open(str(path), plugin="napari-fdlc")
+    points = [layer for layer in layers if type(layer).__name__ == "Points"]
+    assert len(points) == 1
+    widget = _auto_label(viewer, identifier, templates)
+    try:
+        widget.set_voxel_size(1.0, 0.36, 0.36)
+    except Exception as exc:  # refused: acceptable
+        assert "nuclei" in str(exc)
+        return
+    image = next(layer for layer in layers if type(layer).__name__ == "Image")
+    assert np.allclose(points[0].scale[-3:], image.scale[-3:]), (tuple(points[0].scale), tuple(image.scale))
+
+
+def test_pressing_set_on_the_shown_voxel_size_changes_it(make_napari_viewer, sample_files, identifier, templates,
+                                                        tmp_path):
+    """Set on what the row shows leaves a many-digit voxel size as it is (shown to 6 digits,
+    it was rewritten 1.5e-6 off: enough for the session then saved to be refused on reopening)."""
+    import tifffile
+
+    sample = _sample(sample_files)
+    exact = (1.2, 0.2596153846153846, 0.2596153846153846)
+    path = tmp_path / "worm.ome.tif"
+    tifffile.imwrite(path, np.asarray(sample.data), ome=True,
+                     metadata={"axes": "CZYX", "PhysicalSizeZ": exact[0], "PhysicalSizeY": exact[1],
+                               "PhysicalSizeX": exact[2], "Channel": {"Name": list(sample.channel_roles)}})
+    viewer = make_napari_viewer()
+    images = viewer.open(str(path), plugin="napari-fdlc")
+    widget = _auto_label(viewer, identifier, templates)
+    shown = widget.voxel_edit.text()
+    widget._gui(widget._on_voxel_entered)  # Set pressed on what the row shows
+    assert widget.last_error is None, widget.last_error
+    assert all(np.allclose(layer.scale, exact, rtol=1e-9, atol=0) for layer in images), \
+        (shown, [tuple(layer.scale) for layer in images])
+
+
+def test_a_set_voxel_size_moves_the_track_layers_of_the_recording_off_their_nuclei(make_napari_viewer, sample_files,
+                                                                                 identifier, templates, tmp_path):
+    """A recording's voxel size may not change under its tracked neurons (in µm at the old
+    size): refused, as under a neuron-ID layer; it was changed and they lay off their nuclei."""
+    import tifffile
+
+    from napari_fdlc._napari.tracks import TrackWidget
+
+    sample = _sample(sample_files)
+    data = np.asarray(sample.data)
+    recording = np.stack([data, np.roll(data, 1, axis=-1)])[:, :, 8:24, 20:80, 60:220]  # t, c, z, y, x: small
+    path = tmp_path / "recording.ome.tif"
+    tifffile.imwrite(path, recording, ome=True,
+                     metadata={"axes": "TCZYX", "PhysicalSizeZ": 1.2, "PhysicalSizeY": 0.36, "PhysicalSizeX": 0.36,
+                               "Channel": {"Name": list(sample.channel_roles)}})
+    viewer = make_napari_viewer()
+    images = viewer.open(str(path), plugin="napari-fdlc")
+    track = TrackWidget(viewer)
+    viewer.window.add_dock_widget(track, name="Track")
+    track.identifier = identifier
+    out = track.run()
+    assert out is not None, track.last_error
+    points = out[-1]
+    before = points.data[:, 1:] * np.asarray(points.scale[1:])  # world µm
+    widget = _auto_label(viewer, identifier, templates)
+    try:
+        widget.set_voxel_size(1.0, 0.36, 0.36)
+    except Exception as exc:
+        assert "nuclei" in str(exc)
+        return
+    # the image moved under the points: a point that lay on voxel v now lies elsewhere
+    ratio = np.asarray(images[0].scale[-3:]) / np.asarray((1.2, 0.36, 0.36))
+    after = points.data[:, 1:] * np.asarray(points.scale[1:])
+    assert np.allclose(after, before * ratio), "the tracked neurons no longer lie on their nuclei"

@@ -459,3 +459,27 @@ def test_cancel_stops_the_job_and_keeps_the_layers(track_widget, recording):
     assert not widget.cancel_button.isEnabled()
     tracks, points = widget.run()  # a cancel does not carry over to the next job
     assert not widget.cancelled and set(np.unique(points.data[:, 0])) == {0, 1, 2}
+
+
+def test_cancel_racing_the_end_of_the_job_leaves_a_stale_cancelling_status(make_napari_viewer, identifier, tmp_path):
+    """Cancel clicked after the result is in (before the job's end is handled) leaves the
+    result and says it was done; the status said 'cancelling…' for good."""
+    from napari_fdlc._napari.tracks import TrackWidget
+    from napari_fdlc.reference import generate_worm
+    from napari_fdlc.table import write_table
+    from napari_fdlc.track import SequenceParams, join_by_time, simulate_sequence
+
+    worm = generate_worm(seed=4)
+    volumes, _ = simulate_sequence(worm, 0, SequenceParams(frames=3, jitter_um=0.2))
+    path = tmp_path / "recording.csv"
+    write_table(join_by_time(volumes).drop(columns=["label"]), path)
+    viewer = make_napari_viewer()
+    widget = TrackWidget(viewer)
+    viewer.window.add_dock_widget(widget, name="Track")
+    widget.identifier = identifier
+    widget.set_sequence(path)
+    worker = widget.run(wait=False)
+    worker.returned.connect(lambda *_: widget.cancel())  # the click lands between 'returned' and 'finished'
+    assert widget.wait(timeout=120)
+    assert not widget.cancelled and widget.last_error is None and len(widget.layers) >= 1
+    assert "cancelling" not in widget.status.text(), widget.status.text()

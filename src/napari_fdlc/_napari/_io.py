@@ -73,20 +73,24 @@ def read_stack_layers(path) -> list[tuple]:
     except VoxelSizeUnknown as exc:  # shown in pixels (the axes the file does say in µm) until set
         unknown = True
         series = read_series(p, voxel_size=[1.0 if v is None else v for v in exc.known])
-        saved = _saved_voxel_size(series.source)
-        if saved is not None:  # set for this image before: its session holds it
-            unknown = False
-            series = dataclasses.replace(series, voxel_size_zyx=saved)
-            warn(f"{p}: the file does not say the voxel size; {' × '.join(f'{v:g}' for v in saved)} µm "
-                 "(z, y, x) taken from its saved session")
-        else:
-            warn(f"{p}: the file does not say the voxel size; shown in pixels: set it (µm) in Auto-label's "
-                 "Voxel size row before labelling or tracking")
+    # A voxel size set in napari for this image (Auto-label's row) is kept by its session: the
+    # file opened again takes it, whether the file says none or says another
+    saved, set_in_napari = _saved_voxel_size(series.source)
+    use_saved = saved is not None and (unknown or (set_in_napari and not np.allclose(saved, series.voxel_size_zyx)))
+    if use_saved:
+        said = "says none" if unknown else f"says {' × '.join(f'{v:g}' for v in series.voxel_size_zyx)}"
+        series = dataclasses.replace(series, voxel_size_zyx=saved)
+        warn(f"{p}: voxel size {' × '.join(f'{v:g}' for v in saved)} µm (z, y, x) as set for this image in "
+             f"napari (its saved session; the file {said})")
+        unknown = False
+    elif unknown:
+        warn(f"{p}: the file does not say the voxel size; shown in pixels: set it (µm) in Auto-label's "
+             "Voxel size row before labelling or tracking")
     if len(series) > 1:
-        layers = stack_layers(series, voxel_unknown=unknown)
+        layers = stack_layers(series, voxel_unknown=unknown, voxel_set=use_saved)
     else:
         stack = Stack(series.data[0], series.voxel_size_zyx, series.channel_roles, series.source, series.channel_names)
-        layers = stack_layers(stack, voxel_unknown=unknown)
+        layers = stack_layers(stack, voxel_unknown=unknown, voxel_set=use_saved)
         if p.lower().endswith(".nwb"):
             neurons = _nwb_neurons(p, stack)
             if neurons is not None:
@@ -98,14 +102,17 @@ def read_stack_layers(path) -> list[tuple]:
     return layers
 
 
-def _saved_voxel_size(image_key: str) -> tuple | None:
-    """The voxel size of the saved review session of ``image_key`` (None without one)."""
+def _saved_voxel_size(image_key: str) -> tuple[tuple | None, bool]:
+    """The voxel size of the saved review session of ``image_key`` (None without one), and
+    whether it was set in napari (Auto-label's Voxel size row) rather than read from the file."""
     path = find_session(image_key)
     try:
-        voxel = ReviewSession.load(path).voxel_size_zyx if path is not None else None
+        session = ReviewSession.load(path) if path is not None else None
     except FdlcError:
-        return None  # said when the session itself is restored
-    return tuple(float(v) for v in voxel) if voxel is not None else None
+        return None, False  # said when the session itself is restored
+    if session is None or session.voxel_size_zyx is None:
+        return None, False
+    return tuple(float(v) for v in session.voxel_size_zyx), bool(session.settings.get("voxel_size_set"))
 
 
 def _nwb_neurons(path: str, stack):
@@ -125,7 +132,9 @@ def _nwb_neurons(path: str, stack):
         table.colours = {k: v for k, v in measure_colours(stack, table.xyz).items() if k != "GFP"}
     except Exception as exc:  # colours are a bonus here; the positions and names are what count
         warn(f"{path}: NWB neuron colours not read ({exc})")
-    return table_points(table, stack.voxel_size_zyx, name=f"{_short_name(path)} neurons")
+    data, kwargs, kind = table_points(table, stack.voxel_size_zyx, name=f"{_short_name(path)} neurons")
+    kwargs["metadata"][META_KEY]["image"] = stack.source  # on the image's voxels: rescaled with it
+    return data, kwargs, kind
 
 
 def restored_session_layer(image_key: str, shape_zyx=None, default_name: str | None = None, voxel_zyx=None):

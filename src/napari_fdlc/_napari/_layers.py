@@ -58,12 +58,14 @@ def contrast_limits(channel) -> tuple[float, float]:
     return (lo, hi)
 
 
-def stack_layers(stack, name: str | None = None, source_key: str | None = None, voxel_unknown: bool = False) -> list[tuple]:
+def stack_layers(stack, name: str | None = None, source_key: str | None = None, voxel_unknown: bool = False,
+                 voxel_set: bool = False) -> list[tuple]:
     """One image layer per channel: R/G/B/W colormaps, additive, gamma 0.7, µm scale. A
     recording (:class:`~napari_fdlc.io.images.StackSeries`) gives t, z, y, x layers (time in
     volumes, scale 1), which the Track widget segments and tracks. With ``voxel_unknown`` (the
     file does not say it) the stack's voxel size is a stand-in, refused by
-    :func:`stack_from_layers` until the layers' scale is set (Auto-label's *Voxel size*)."""
+    :func:`stack_from_layers` until the layers' scale is set (Auto-label's *Voxel size*);
+    ``voxel_set``: the voxel size is the one set in napari for this image (its saved session's)."""
     base = name or _short_name(stack.source)
     key = source_key or stack.source
     recording = stack.data.ndim == 5
@@ -83,7 +85,8 @@ def stack_layers(stack, name: str | None = None, source_key: str | None = None, 
             "opacity": 0.5 if role == "W" else 1.0,
             "axis_labels": ("t",) * recording + ("z", "y", "x"),
             "metadata": {META_KEY: {"image": key, "role": role, "channel_name": label, "stack_name": base,
-                                    **({"voxel_stand_in": list(stack.voxel_size_zyx)} if voxel_unknown else {})}},
+                                    **({"voxel_stand_in": list(stack.voxel_size_zyx)} if voxel_unknown else {}),
+                                    **({"voxel_set": True} if voxel_set else {})}},
         }
         layers.append((channel, kwargs, "image"))
     return layers

@@ -589,7 +589,8 @@ class AutoLabelWidget(QWidget):
         images = self._chosen_images()
         layer = images.get("W") or next(iter(images.values()), None)
         unknown = layer is not None and voxel_unknown(layer)
-        self.voxel_edit.setText("" if layer is None or unknown else " ".join(f"{v:g}" for v in layer.scale[-3:]))
+        # every digit the file gave (Set on the text shown must not round the voxel size)
+        self.voxel_edit.setText("" if layer is None or unknown else " ".join(f"{v:.12g}" for v in layer.scale[-3:]))
         self.voxel_edit.setPlaceholderText("not in the file: z y x (µm)" if unknown else "z y x (µm)")
 
     def _on_voxel_entered(self) -> None:
@@ -663,23 +664,33 @@ class AutoLabelWidget(QWidget):
             self._on_role_activated(role)
 
     def set_voxel_size(self, z: float, y: float, x: float) -> None:
-        """Set the chosen image's voxel size (µm): the scale of every layer of its file, e.g. when
-        the file does not say it (shown in pixels until then)."""
+        """Set the chosen image's voxel size (µm): the scale of every layer of the chosen
+        channels' files (and of the neurons an NWB file holds, on its voxels), e.g. when a file
+        does not say it (shown in pixels until then) or says it wrong. Kept by the image's
+        session, so that the file opened again takes it."""
         values = np.array([z, y, x], dtype=float)
         if not (np.all(np.isfinite(values)) and np.all(values > 0)):
             raise FdlcError(f"voxel size {z} {y} {x}: give three positive numbers z y x in µm")
         images = self._chosen_images()
         if not images:
             raise FdlcError("no image chosen: pick its channel layers first, then set the voxel size")
-        key = image_key_of(images.get("W") or next(iter(images.values())))
+        keys = {image_key_of(layer) for layer in images.values()}
+        chosen = [layer for layer in self.viewer.layers if is_image_layer(layer) and image_key_of(layer) in keys]
+        if all(np.allclose(layer.scale[-3:], values, rtol=1e-9, atol=0) and not voxel_unknown(layer) for layer in chosen):
+            return  # as it is (Set pressed on what the row shows)
+        placed = []  # neurons placed in µm at the current voxel size: a new one would move them off
         for layer in self.viewer.layers:
             meta = (layer.metadata or {}).get(META_KEY) or {}
-            if _is_points(layer) and meta.get("session") and meta.get("image") == key:
-                raise FdlcError(f"'{layer.name}' holds this image's neurons, placed at its voxel size: a new one would "
+            if meta.get("image") in keys and (meta.get("session") or meta.get("tracks")):
+                raise FdlcError(f"'{layer.name}' holds neurons placed at this image's voxel size: a new one would "
                                 "move them off their nuclei")
-        for layer in self.viewer.layers:
-            if is_image_layer(layer) and image_key_of(layer) == key:
-                layer.scale = (*layer.scale[:-3], *values)
+            if meta.get("image") in keys and _is_points(layer):
+                placed.append(layer)  # in the image's voxels (an NWB file's neurons): moved with it
+        for layer in chosen + placed:
+            layer.scale = (*layer.scale[:-3], *values)
+            meta = dict((layer.metadata or {}).get(META_KEY) or {})
+            meta.pop("voxel_stand_in", None)
+            layer.metadata = {**(layer.metadata or {}), META_KEY: {**meta, "voxel_set": True}}
         self._show_voxel_size()
 
     def set_neurons(self, source) -> None:
@@ -746,8 +757,10 @@ class AutoLabelWidget(QWidget):
         identifier, chirality = self.identifier, self.chirality_combo.currentData()
         # The channels are stacked (a copy of every one) in the worker, not on the GUI thread.
         image_key = base_name = None
+        voxel_set = False  # the voxel size set in the widget, not the file's: the session keeps it
         if images:
             key_layer = images.get("W") or next(iter(images.values()))
+            voxel_set = bool(((key_layer.metadata or {}).get(META_KEY) or {}).get("voxel_set"))
             image_key = image_key_of(key_layer)
             # kept with the layer: an image made in napari is known by its name, which the user may change
             key_layer.metadata = {**(key_layer.metadata or {}),
@@ -832,6 +845,8 @@ class AutoLabelWidget(QWidget):
                 self._stack = stack
             voxel = stack.voxel_size_zyx if stack is not None else voxel_without_image
             settings = {"template": template_text, "colour": use_colour, "diameter_um": diameter}
+            if stack is not None:
+                settings["voxel_size_set"] = voxel_set
             if own:
                 if self.session is None or self.session.table is not given_table:
                     # the layer, or points of it, went while the job ran

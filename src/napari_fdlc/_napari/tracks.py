@@ -75,13 +75,14 @@ class _Signals(QObject):
 
 
 def track_layers(result, sequence, name: str = "sequence", frames: list[int] | None = None,
-                 time_axis: tuple[float, float] = (1.0, 0.0)) -> list[tuple]:
+                 time_axis: tuple[float, float] = (1.0, 0.0), image_key: str | None = None) -> list[tuple]:
     """napari layer data tuples ``(data, kwargs, type)`` for a :class:`TrackResult`: Tracks of
     the tracked neurons (none when no neuron is tracked: napari cannot hold empty tracks) and
     Points of all neurons, time first, then z, y, x in µm. Time is ``frames`` (a recording's
     time points, a table sequence's frame numbers: :func:`frames_of`) or else each volume's
     index in ``sequence``, shown at ``time_axis`` (scale, translate: the recording's own, so
-    that each frame lies over its image)."""
+    that each frame lies over its image; ``image_key``: that recording's, kept in the metadata:
+    its voxel size may not change under them)."""
     frames = list(range(len(sequence))) if frames is None else frames
     rows, points, feats = [], [], {"t": [], "track_id": [], "track_conf": [], "name": []}
     for k, (vol, tid, conf) in enumerate(zip(sequence.volumes, result.track_id, result.confidence)):
@@ -101,7 +102,8 @@ def track_layers(result, sequence, name: str = "sequence", frames: list[int] | N
     ids = np.asarray(feats["track_id"])
     text = [n if n else (str(i) if i >= 0 else "") for n, i in zip(feats["name"], ids)]
     colours = _id_colours(ids)
-    meta = {"fdlc": {"tracks": True, "times": list(sequence.times), "names": track_names if labelled else {}}}
+    meta = {"fdlc": {"tracks": True, "times": list(sequence.times), "names": track_names if labelled else {},
+                     **({"image": image_key} if image_key else {})}}
     placed = {"scale": (time_axis[0], 1.0, 1.0, 1.0), "translate": (time_axis[1], 0.0, 0.0, 0.0)}
     tracks = (data, {"name": f"{name} tracks", "tail_length": 10, "blending": "translucent",
                      "axis_labels": ("t", "z", "y", "x"), "metadata": meta, **placed}, "tracks")
@@ -159,6 +161,7 @@ class TrackWidget(QWidget):
         self._busy = False
         self._cancel = threading.Event()  # set by Cancel; the running job stops at its next volume
         self.cancelled = False  # the last job was cancelled
+        self._summary = ""  # what the last result shows, in the status line
         self._signals = _Signals()
         self._signals.progress.connect(self._on_progress)
         self._build_ui()
@@ -431,7 +434,7 @@ class TrackWidget(QWidget):
 
     def _add_layers(self, sequence, result, frames, name, key, time_axis) -> None:
         self.sequence, self.result = sequence, result
-        made = track_layers(result, sequence, name, frames, time_axis)
+        made = track_layers(result, sequence, name, frames, time_axis, image_key=key)
         # A run on the same input replaces its layers; another input's result stays beside it.
         for layer in self._shown.pop(key, []):
             if layer in self.viewer.layers:
@@ -443,8 +446,8 @@ class TrackWidget(QWidget):
         self.viewer.dims.ndisplay = 3
         self.viewer.dims.set_current_step(0, 0)
         tracked = np.mean([(t >= 0).mean() for t in result.track_id])
-        self.status.setText(f"{len(sequence)} time points, {len(result.names)} tracks; "
-                            f"{100 * tracked:.0f} % of neurons tracked")
+        self._summary = f"{len(sequence)} time points, {len(result.names)} tracks; {100 * tracked:.0f} % of neurons tracked"
+        self.status.setText(self._summary)
         if len(made) == 1:
             notify_warning(f"{name}: no neuron could be tracked (shown untracked); check the reference")
 
@@ -476,6 +479,8 @@ class TrackWidget(QWidget):
             self.status.setText("tracking…")
         elif self.last_error is None and not self.cancelled:
             self.progress_bar.setValue(100)
+            if self._cancel.is_set():  # Cancel came after the result was in: said as it is
+                self.status.setText(f"{self._summary} (done before it could be cancelled)")
         if not busy:
             self._worker = None
             self._signals.idle.emit()
