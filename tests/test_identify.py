@@ -13,7 +13,7 @@ import torch
 
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.geometry import canonical_frame
-from napari_fdlc.identify import FEW_NEURONS, Identifier
+from napari_fdlc.identify import FEW_NEURONS, Identifier, label_neurons
 from napari_fdlc.model import CorrespondenceModel
 from napari_fdlc.reference import generate_worm, load_atlas, load_panel
 from napari_fdlc.table import NeuronTable
@@ -774,3 +774,90 @@ def test_a_fixed_name_with_spaces_or_unsure_mark_settles_the_handedness_as_the_p
     for given in (" ADAL ", "ADAL?"):
         answer = shipped.label_panel(mirrored, panel, fixed={row: given})
         assert answer.info["mirrored"] == plain.info["mirrored"] and answer.auto_id == plain.auto_id
+
+
+# ------------------------------------------------------------------------------------------------
+# Session 33's review of the identification core
+
+
+def _unlabelled(worm: NeuronTable) -> NeuronTable:
+    return NeuronTable(worm.xyz, worm.colours, source="test")
+
+
+def _right(result, truth) -> float:
+    return float(np.mean(np.array(result.auto_id) == np.asarray(truth)))
+
+
+def test_confirming_a_correct_name_beside_a_template_keeps_the_answer(shipped):
+    """Confirming one name the answer had right, beside a template, keeps the answer: the fixed
+    names chose among every placement of both handedness by that one neuron's log p, and a wrong
+    mirrored start won (top-1 74 -> 9 %)."""
+    worm, template = generate_worm(seed=2), generate_worm(seed=102)
+    test = _unlabelled(worm)
+    before = label_neurons(test, [template], identifier=shipped)
+    assert before.auto_id[0] == worm.labels[0] == "ADAL"  # the set-up: row 0 named right
+    after = label_neurons(test, [template], fixed={0: "ADAL"}, identifier=shipped)
+    assert _right(after, worm.labels) > _right(before, worm.labels) - 0.10, (
+        "top-1 before / after confirming ADAL", _right(before, worm.labels), _right(after, worm.labels),
+        "mirrored before / after", before.info["templates"][0]["mirrored"], after.info["templates"][0]["mirrored"])
+
+
+def _long_test_named():
+    """A head plus 80 neurons reaching far into the body: named in its head window only."""
+    w = generate_worm(seed=1)
+    head = canonical_frame(w.xyz)[0]
+    length = np.ptp(head[:, 0])
+    rng = np.random.default_rng(0)
+    body = np.column_stack([rng.uniform(head[:, 0].max() + 5, head[:, 0].max() + 2 * length, 80),
+                            rng.normal(0, 3, 80), rng.normal(0, 3, 80)])
+    colours = {c: np.concatenate([v, rng.choice(v, 80)]) for c, v in w.colours.items()}
+    return NeuronTable(np.vstack([head, body]), colours, source="long"), w
+
+
+def test_fixed_row_inside_the_head_window_keeps_the_models_confidence(shipped, panel):
+    """A name fixed outside the head window leaves a fixed row inside at the model's own
+    probability (it became 1.0: the part was labelled again from its one-to-one answer, and its
+    names assigned on the tempered probabilities)."""
+    test, worm = _long_test_named()
+    first = shipped.label_panel(test, panel)
+    assert first.info.get("head_window") is not None  # the set-up: a head window
+    outside = next(j for j in range(len(test)) if first.auto_id[j] == "" and first.probs[j].sum() == 0)
+    inside = next(j for j in range(len(worm)) if first.probs[j].sum() > 0 and first.auto_id[j] == worm.labels[j])
+    name = worm.labels[inside]
+    other = next(n for n in first.auto_id if n and n != name)
+    alone = shipped.label_panel(test, panel, fixed={inside: name})
+    both = shipped.label_panel(test, panel, fixed={inside: name, outside: other})
+    assert alone.auto_conf[inside] < 0.99  # the model's own probability
+    assert both.auto_conf[inside] == pytest.approx(alone.auto_conf[inside], abs=0.05), (
+        alone.auto_conf[inside], both.auto_conf[inside])
+
+
+@pytest.mark.parametrize("reference", ["panel", "template"])
+def test_one_neuron_colour_is_no_evidence(shipped, reference):
+    """One neuron has no colour reading (its normal score is always the median's): named as
+    by position. Every single neuron was named alike 'by colour', 4-6x as confidently."""
+    worm = generate_worm(seed=1)
+    templates = None if reference == "panel" else [generate_worm(seed=2)]
+    one = worm.subset([40])  # AVEL
+    with_colour = label_neurons(NeuronTable(one.xyz, one.colours, source="one"), templates, identifier=shipped)
+    without = label_neurons(NeuronTable(one.xyz, source="one"), templates, identifier=shipped)
+    assert with_colour.auto_id == without.auto_id and with_colour.auto_conf == pytest.approx(without.auto_conf, abs=1e-6), (
+        with_colour.auto_id, with_colour.auto_conf, without.auto_id, without.auto_conf)
+
+
+def test_coordinates_beyond_single_precision_give_a_one_line_error(tmp_path):
+    """Coordinates of 1e20 are refused in one line (the registration's float32 overflowed:
+    a scipy traceback out of fdlc label)."""
+    from napari_fdlc.errors import FdlcError
+    from napari_fdlc.label import label_files
+    from napari_fdlc.table import write_table
+
+    worm = generate_worm(seed=1)
+    path = tmp_path / "huge.csv"
+    write_table(NeuronTable(worm.xyz * 1e20, worm.colours, source="huge"), path)
+    out = tmp_path / "out.csv"
+    try:
+        label_files([str(path)], out=str(out))
+    except FdlcError:
+        return
+    assert out.exists()

@@ -81,11 +81,11 @@ def _sample_frame() -> pd.DataFrame:
 
 
 def test_a_neuron_far_out_is_answered_not_a_traceback(tmp_path):
-    """One finite but absurd coordinate (1e30: a sentinel, a unit slip in one row): the head
-    window slid 10 µm at a time over the whole span, so fdlc label died in np.arange
-    ('Maximum allowed size exceeded'); at 1e8 it took ~50 s. It now answers every row."""
+    """One finite but absurd coordinate (1e8 µm, within what is read: a unit slip in one row):
+    the head window slid 10 µm at a time over the whole span, so fdlc label took ~50 s (at 1e30
+    it died in np.arange). It now answers every row."""
     df = _sample_frame().iloc[:60][["x_um", "y_um", "z_um", "R", "G", "B"]].copy()
-    df.loc[5, "x_um"] = 1e30
+    df.loc[5, "x_um"] = 1e8
     test = tmp_path / "outlier.csv"
     df.to_csv(test, index=False)
     out = tmp_path / "out.csv"
@@ -162,7 +162,7 @@ def _stderr_lines(capsys) -> list[str]:
 def test_a_sentinel_coordinate_is_refused_in_one_line(tmp_path, capsys, worm, other_worm, value):
     """x_um = 1.7e308 (MATLAB's realmax, a missing-value marker) or 1e60 in a test or template:
     a LinAlgError traceback (the geometry overflowed); at 1e155 numpy's own RuntimeWarnings on
-    stderr. Beyond 1e30 µm the row is now refused in one line naming it (1e30 is still answered)."""
+    stderr. Beyond 1e9 µm the row is now refused in one line naming it."""
     bad = worm.xyz.copy()
     bad[5, 0] = value
     test, template = tmp_path / "test.csv", tmp_path / "template.csv"

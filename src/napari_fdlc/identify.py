@@ -441,7 +441,7 @@ class Identifier:
         for f in found:
             agreements.append(_agreement_with_fixed([f["all_log_p"]], [template], fixed))
             if agreements[-1] is not None and not self.settings.refine_steps:
-                f["best"] = int(np.argmax(agreements[-1]))
+                f["best"] = _best_given_fixed(f["willingness"], f["mirrored"], agreements[-1])
                 f["log_p"], f["moved"] = f["all_log_p"][f["best"]], f["candidates"][f["best"]]
         self._warp_refine(template, tests, found, colours, use_colour)
         out = []
@@ -601,13 +601,14 @@ class Identifier:
         if all(w is None for w in windows):
             return self._label_many(tests, templates, use_colour, atlas, fixed)
         return [self._label_many([test], templates, use_colour, atlas, fixed)[0] if w is None else
-                _widened(self._label_many([test.subset(w)], templates, use_colour, atlas, _fixed_in(fixed, w))[0], w,
-                         len(test), fixed, self.settings.no_match_weight)
+                _widened(self._label_many([test.subset(w)], templates, use_colour, atlas, _fixed_in(fixed, w),
+                                          _fixed_outside(fixed, w))[0], w, len(test), fixed)
                 for test, w in zip(tests, windows)]
 
     def _label_many(self, tests: list[NeuronTable], templates: list[NeuronTable], use_colour: bool,
-                    atlas: Atlas | None, fixed: dict[int, str] | None) -> list[Labelling]:
-        """:meth:`label_many` for tests of a head's extent."""
+                    atlas: Atlas | None, fixed: dict[int, str] | None, taken: set[str] = frozenset()) -> list[Labelling]:
+        """:meth:`label_many` for tests of a head's extent; ``taken``: names the user gave neurons
+        outside them (not given inside)."""
         if not tests:
             return []
         flags = [self._check(test, templates, use_colour) for test in tests]
@@ -647,6 +648,7 @@ class Identifier:
                 other = self._join_atlas(test, names, other, other, use_colour, view.get(not mirrored))[0]
                 doubt = self.settings.template_chirality_doubt
                 probs = (1 - doubt) * probs + doubt * other
+            probs, assign_probs = _without(names, taken, probs, assign_probs)
             out.append(make_labelling(names, probs, fixed, {"templates": info, "colour": use_colour, "atlas": joined},
                                       self.settings.no_match_weight, assign_probs=assign_probs))
         return out
@@ -775,15 +777,17 @@ class Identifier:
         if window is None:
             result = self._label_panel(test, panel, use_colour, fixed)
         else:
-            result = _widened(self._label_panel(test.subset(window), panel, use_colour, _fixed_in(fixed, window)), window,
-                              len(test), fixed, self.settings.no_match_weight)
+            result = _widened(self._label_panel(test.subset(window), panel, use_colour, _fixed_in(fixed, window),
+                                                _fixed_outside(fixed, window)), window, len(test), fixed)
         taken_up = smaller_worm_factor(test.xyz)
         if taken_up > 1.0:  # registered as a smaller worm (napari_fdlc.register.YOUNG_ADULT_SPACING_UM)
             result.info["smaller_worm"] = taken_up
         return result
 
-    def _label_panel(self, test: NeuronTable, panel: Panel, use_colour: bool, fixed: dict[int, str] | None) -> Labelling:
-        """:meth:`label_panel` for a test of a head's extent, colour checked."""
+    def _label_panel(self, test: NeuronTable, panel: Panel, use_colour: bool, fixed: dict[int, str] | None,
+                     taken: set[str] = frozenset()) -> Labelling:
+        """:meth:`label_panel` for a test of a head's extent, colour checked; ``taken`` as in
+        :meth:`_label_many`."""
         placements = panel.atlas.register(test, use_colour, self._chiralities())
         templates = panel.templates
         tc_sc = [self._model_colours(t, [test], use_colour) for t in templates]
@@ -801,7 +805,8 @@ class Identifier:
         willingness = willingness * len(templates) / len(deciders)
         willingness = willingness - self.settings.mirror_penalty * np.array([p.mirrored for p in placements])
         agreement = _agreement_with_fixed(first, [templates[i] for i in deciders], fixed)
-        best = int(np.argmax(willingness if agreement is None else agreement))
+        best = int(np.argmax(willingness)) if agreement is None else \
+            _best_given_fixed(willingness, [p.mirrored for p in placements], agreement)
         others = range(len(deciders), len(templates))
         rest = passes(others, [placements[best]]) if len(others) else []
         answers = [lps[best] for lps in first] + [lps[0] for lps in rest]  # per template, chosen placement
@@ -840,8 +845,9 @@ class Identifier:
         probs = _sharpen(probs, self.settings.panel_temperature)
         info = {"colour": use_colour, "mirrored": placements[best].mirrored, "willingness": willingness.tolist(),
                 "registration": [p.score for p in placements]}
-        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight,
-                              assign_probs=with_atlas(names, names_and_probs(answers, calibrated=False)[1], best))
+        probs, assign_probs = _without(names, taken, probs,
+                                       with_atlas(names, names_and_probs(answers, calibrated=False)[1], best))
+        return make_labelling(names, probs, fixed, info, self.settings.no_match_weight, assign_probs=assign_probs)
 
     @one_blas_thread
     def label_panel_many(self, tests: list[NeuronTable], panel: Panel, use_colour: bool = True,
@@ -977,18 +983,29 @@ def _fixed_in(fixed: dict[int, str] | None, rows: np.ndarray) -> dict[int, str] 
     return inside or None
 
 
-def _widened(part: Labelling, rows: np.ndarray, n: int, fixed: dict[int, str] | None,
-             no_match_weight: float) -> Labelling:
-    """``part``, the answer for ``rows`` of a test of ``n`` neurons, as the answer for the whole
-    test: the other neurons get no name (certainly no named match), or the name the user fixed.
-    A name fixed outside ``rows`` is taken from the neurons inside (assigned again without it)."""
+def _fixed_outside(fixed: dict[int, str] | None, rows: np.ndarray) -> set[str]:
+    """The names the user fixed on neurons outside ``rows``: not given to a neuron inside."""
     inside = set(rows.tolist())
-    outside = {name for row, name in (fixed or {}).items() if row not in inside}
-    taken = [i for i, name in enumerate(part.names) if name in outside]
-    if taken:
-        probs = part.probs.copy()
-        probs[:, taken] = 0.0
-        part = make_labelling(part.names, probs, _fixed_in(fixed, rows), part.info, no_match_weight)
+    return {name for row, name in (fixed or {}).items() if row not in inside}
+
+
+def _without(names: list[str], taken: set[str], *probs: np.ndarray) -> list[np.ndarray]:
+    """``probs`` (N, names) with the ``taken`` names' columns emptied (their share goes to "no
+    named match"), before the names are assigned: the reported and the assigned answers alike."""
+    columns = [i for i, name in enumerate(names) if name in taken]
+    if not columns:
+        return list(probs)
+    out = [p.copy() for p in probs]
+    for p in out:
+        p[:, columns] = 0.0
+    return out
+
+
+def _widened(part: Labelling, rows: np.ndarray, n: int, fixed: dict[int, str] | None) -> Labelling:
+    """``part``, the answer for ``rows`` of a test of ``n`` neurons (named without the names
+    fixed outside them, :func:`_fixed_outside`), as the answer for the whole test: the other
+    neurons get no name (certainly no named match), or the name the user fixed."""
+    inside = set(rows.tolist())
     probs = np.zeros((n, len(part.names)))
     probs[rows] = part.probs
     auto_id, auto_conf = [""] * n, np.ones(n)
@@ -1082,6 +1099,21 @@ def _agreement_with_fixed(per_candidate, templates: list[NeuronTable], fixed: di
             score = np.array([lp[j, i].sum() for lp in lps])
             total = score if total is None else total + score
     return total
+
+
+def _best_given_fixed(willingness: np.ndarray, mirrored, agreement: np.ndarray) -> int:
+    """The placement the user's fixed names point to: each handedness's likeliest placement
+    (willingness and registration prior, as without fixed names), then of those the one the
+    fixed names agree with more. They settle the handedness, not the pose: over every
+    placement, one fixed neuron's log p chose among poses by its noise (a wrong mirrored start
+    won, and a template's answer fell from 73 to 9 % top-1 once one right name was confirmed).
+    One name cannot tell a worm named the wrong way round from one neuron given its partner's
+    name, and is taken as the first (benchmarks/fixed_names.py, docs/handedness.md)."""
+    mirrored = np.asarray(mirrored, bool)
+    willingness = np.asarray(willingness, float)
+    winners = [int(np.flatnonzero(mirrored == m)[np.argmax(willingness[mirrored == m])])
+               for m in (False, True) if (mirrored == m).any()]
+    return max(winners, key=lambda k: agreement[k])
 
 
 _DEFAULT: dict = {}

@@ -342,7 +342,9 @@ def file_line(df: pd.DataFrame | None, row: int, first_line: int = 2) -> int:
     return lines[row] if df is not None and len(lines) == len(df) else row + first_line
 
 
-MAX_POSITION_UM = 1e30  # beyond any microscope; the registration still works this far out (float32)
+# A kilometre: beyond any microscope stage (stage coordinates reach 1e5-1e6 µm). The
+# registration's float32 squares overflowed from about 1e19 (a scipy traceback in fdlc label).
+MAX_POSITION_UM = 1e9
 
 
 def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, allow_empty: bool,

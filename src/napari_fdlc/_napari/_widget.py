@@ -927,7 +927,8 @@ class AutoLabelWidget(QWidget):
             return None
         return (f"your names ({', '.join(sorted(sided)[:3])}) put this recording mirrored relative to the "
                 "atlas: if your microscope always mirrors z, set Handedness to 'mirrored' (it is kept "
-                "for the next sessions)")
+                "for the next sessions); if you only corrected one neuron's side, Undo and decide a few "
+                "more of its names first (one name cannot tell the two apart)")
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block (processing GUI events) until the running job is done; True when idle."""
