@@ -802,23 +802,11 @@ def test_confirming_a_correct_name_beside_a_template_keeps_the_answer(shipped):
         "mirrored before / after", before.info["templates"][0]["mirrored"], after.info["templates"][0]["mirrored"])
 
 
-def _long_test_named():
-    """A head plus 80 neurons reaching far into the body: named in its head window only."""
-    w = generate_worm(seed=1)
-    head = canonical_frame(w.xyz)[0]
-    length = np.ptp(head[:, 0])
-    rng = np.random.default_rng(0)
-    body = np.column_stack([rng.uniform(head[:, 0].max() + 5, head[:, 0].max() + 2 * length, 80),
-                            rng.normal(0, 3, 80), rng.normal(0, 3, 80)])
-    colours = {c: np.concatenate([v, rng.choice(v, 80)]) for c, v in w.colours.items()}
-    return NeuronTable(np.vstack([head, body]), colours, source="long"), w
-
-
 def test_fixed_row_inside_the_head_window_keeps_the_models_confidence(shipped, panel):
     """A name fixed outside the head window leaves a fixed row inside at the model's own
     probability (it became 1.0: the part was labelled again from its one-to-one answer, and its
     names assigned on the tempered probabilities)."""
-    test, worm = _long_test_named()
+    test, worm = _long_test(), generate_worm(seed=1)  # its head rows are the worm's, in order
     first = shipped.label_panel(test, panel)
     assert first.info.get("head_window") is not None  # the set-up: a head window
     outside = next(j for j in range(len(test)) if first.auto_id[j] == "" and first.probs[j].sum() == 0)

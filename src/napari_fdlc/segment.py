@@ -154,22 +154,10 @@ def _bin(volume: np.ndarray, factors) -> np.ndarray:
     return out
 
 
-def detect_nuclei(
-    volume: np.ndarray,
-    voxel_size_zyx: tuple[float, float, float],
-    diameter_um: float = 3.0,
-    threshold: float = 6.0,
-    min_relative: float = 0.08,
-    min_distance_um: float | None = None,
-    progress: Progress | None = None,
-    sigma_fraction: tuple[float, float] = (0.2, 0.4),
-    saddle: float = 0.9,
-    merge_distance_um: float | None = None,
-    valley_sd: float = 0.0,
-    fine_scale: float | None = FINE_SCALE,
-    band_passed: tuple | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Nucleus centres in a Z, Y, X volume.
+def detect_nuclei(volume: np.ndarray, voxel_size_zyx: tuple[float, float, float], diameter_um: float = 3.0,
+                  threshold: float = 6.0, **options) -> tuple[np.ndarray, np.ndarray]:
+    """Nucleus centres in a Z, Y, X volume (``options``: the keywords below, defaults in
+    :func:`_detect_nuclei`).
 
     Returns ``(zyx_um, score)``: centres in µm (voxel ``i`` at ``i * size``) and the band-pass
     response at each centre in units of the response's noise SD, strongest first.
@@ -185,8 +173,7 @@ def detect_nuclei(
     :func:`_band_pass` at this diameter when the caller has it already.
     """
     check_detection_options(diameter_um, threshold)
-    return _detect_nuclei(volume, voxel_size_zyx, diameter_um, threshold, min_relative, min_distance_um, progress,
-                          sigma_fraction, saddle, merge_distance_um, valley_sd, fine_scale, band_passed)
+    return _detect_nuclei(volume, voxel_size_zyx, diameter_um, threshold, **options)
 
 
 def _detect_nuclei(
