@@ -1,7 +1,10 @@
 """`fdlc label` against the contract of docs/neuron_table.md."""
 
+import os
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -469,3 +472,54 @@ def test_a_folder_where_one_answer_goes_is_refused_before_any_answer_is_written(
     assert run("label", test, template, "--weights", untrained_weights, "--out", tmp_path / "ids") == 2
     assert "is a folder" in capsys.readouterr().err
     assert [p.name for p in (tmp_path / "ids").iterdir()] == ["test.csv"]
+
+
+def _imports_torch(args: list[str], cwd: Path) -> tuple[int, bool, str]:
+    code = ("import sys\nfrom napari_fdlc.cli import main\n"
+            f"rc = main({args!r})\n"
+            "print('RC', rc, 'TORCH', 'torch' in sys.modules)\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, timeout=180,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    found = re.search(r"RC (\d+) TORCH (True|False)", done.stdout)
+    assert found, done.stdout + done.stderr
+    return int(found.group(1)), found.group(2) == "True", done.stderr
+
+
+@pytest.fixture
+def small_tables(tmp_path):
+    import numpy as np
+    import pandas as pd
+
+    from napari_fdlc.reference import generate_worm
+    from napari_fdlc.table import write_table
+
+    write_table(generate_worm(seed=0), tmp_path / "template.csv")
+    write_table(generate_worm(seed=1), tmp_path / "test.csv")
+    worm = pd.read_csv(tmp_path / "template.csv")
+    rng = np.random.default_rng(0)
+    frames = []
+    for t in range(3):
+        f = worm.copy()
+        f[["x_um", "y_um", "z_um"]] += rng.normal(0, 0.3, (len(f), 3))
+        f["t"] = t
+        f["label"] = ""
+        frames.append(f)
+    write_table(pd.concat(frames, ignore_index=True), tmp_path / "recording.csv")
+    return tmp_path
+
+
+def test_track_geometry_needs_no_torch(small_tables):
+    """`fdlc track --method geometry` (no model) never imports torch (1.8 s here): the path
+    helper model_files lived in model.py, and the warp was solved with torch."""
+    rc, torch_loaded, err = _imports_torch(
+        ["track", "recording.csv", "--method", "geometry", "--quiet", "--out", "tracks.csv"], small_tables)
+    assert rc == 0, err
+    assert not torch_loaded, "fdlc track --method geometry (no model) imported torch"
+
+
+def test_label_cpd_needs_no_torch(small_tables):
+    """`fdlc label --method cpd` (no model) never imports torch."""
+    rc, torch_loaded, err = _imports_torch(
+        ["label", "test.csv", "--template", "template.csv", "--method", "cpd", "--out", "cpd.csv"], small_tables)
+    assert rc == 0, err
+    assert not torch_loaded, "fdlc label --method cpd (no model) imported torch"

@@ -780,3 +780,17 @@ def test_train_out_onto_its_own_recipe_is_refused(tmp_path, fake_corpus, capsys)
     assert _train(fake_corpus, config, tmp_path / "exp1") == 2
     assert "would replace an input" in _one_line_error(capsys)
     assert config.read_bytes() == before
+
+
+def test_train_no_calibrate_with_calibrate_only_is_refused(tmp_path, monkeypatch):
+    """`--no-calibrate --calibrate-only` is refused (exit 2, nothing fitted): the settings were
+    fitted anyway and the checkpoint's JSON rewritten."""
+    import napari_fdlc.train as train_module
+    from napari_fdlc.cli import main
+
+    called = []
+    monkeypatch.setattr(train_module, "calibrate_checkpoint", lambda cfg: called.append(cfg))
+    rc = main(["train", "--config", str(Path(__file__).resolve().parents[1] / "docs" / "training" / "stage4.json"), "--out", str(tmp_path / "m"),
+               "--calibrate-only", "--no-calibrate"])
+    assert not called, "the checkpoint was calibrated although --no-calibrate was given"
+    assert rc == 2

@@ -39,7 +39,7 @@ def run(args) -> int:
         if getattr(args, flag) < 0:
             raise FdlcError(f"--{flag.replace('_', '-')} must be 0 or more (got {getattr(args, flag)})")
     from .corpus import refuse_out_in_corpus
-    from .model import model_files
+    from .errors import model_files
 
     # The model and the corpus are read, never written: a report over the weights' JSON or a
     # worm's table would destroy them.

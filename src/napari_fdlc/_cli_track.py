@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .model import model_files
+    from .errors import model_files
     from .table import read_volume, warn_implausible_scales, write_table
     from .track import TrackSettings, read_sequence, track
 

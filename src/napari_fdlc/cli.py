@@ -139,11 +139,13 @@ def _train_parser(sub) -> None:
 
 
 def _run_train(args) -> int:
-    from .model import model_files
+    from .errors import model_files
     from .train import TrainConfig, train
 
     if args.resume and args.init_from:
         raise FdlcError("--resume continues the checkpoint at --out and --init-from starts a new run from other weights: give one")
+    if args.no_calibrate and args.calibrate_only:
+        raise FdlcError("--no-calibrate and --calibrate-only ask for opposite things: give one")
     if args.config:
         cfg = TrainConfig.from_json(args.config)
     elif args.resume or args.calibrate_only:

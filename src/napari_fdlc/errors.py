@@ -150,3 +150,16 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs):
         except FileNotFoundError:
             pass
         raise
+
+
+def model_files(path: str | Path) -> tuple[Path, Path]:
+    """The weights and configuration files of the model at ``path`` (``path.safetensors``,
+    ``path.json``; given with either suffix, the same pair). The suffix is added, not put in
+    place of one: ``runs/model.v2`` is ``runs/model.v2.safetensors``. Here, not in model.py:
+    checking outputs against the weights needs no torch (fdlc track --method geometry,
+    fdlc label --method cpd)."""
+    text = str(path)
+    for suffix in (".safetensors", ".json"):
+        if text.endswith(suffix):
+            text = text[: -len(suffix)]
+    return Path(text + ".safetensors"), Path(text + ".json")

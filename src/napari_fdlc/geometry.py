@@ -13,9 +13,11 @@ never made mirror-invariant: a mirror swaps left and right neurons.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial.distance import cdist
 
 from .errors import FdlcError
@@ -269,11 +271,12 @@ def fit_warp(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, sigma: float
     # min sum_k w_k |basis_k c - r_k|^2 + smoothness c' G c, G the kernel between centres
     system = weighted @ basis + smoothness * _gauss(centres, centres, sigma)
     system.flat[:: len(system) + 1] += 1e-9 * np.trace(system)
-    # In torch: beside torch's own threads, numpy/scipy's threaded OpenBLAS can take 50-500x longer.
-    import torch
-
-    factor = torch.linalg.cholesky(torch.from_numpy(system))
-    coef = torch.cholesky_solve(torch.from_numpy(weighted @ residual), factor).numpy()
+    torch = sys.modules.get("torch")
+    if torch is not None:  # beside torch's own threads, numpy/scipy's threaded OpenBLAS can take 50-500x longer
+        factor = torch.linalg.cholesky(torch.from_numpy(system))
+        coef = torch.cholesky_solve(torch.from_numpy(weighted @ residual), factor).numpy()
+    else:  # no model in this process (fdlc track --method geometry): not worth torch's import
+        coef = cho_solve(cho_factor(system), weighted @ residual)
     return Warp(affine, centres, coef, sigma, origin)
 
 

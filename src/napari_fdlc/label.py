@@ -116,7 +116,7 @@ def label_files(
             warn(f"{t.source}: only {len(t)} neuron(s): names from so few positions are guesses, confidences too")
     if method == "cpd" and (chirality != "auto" or not use_atlas):
         warn("--chirality and --no-atlas are for the fdlc method (cpd tries both handednesses): ignored here")
-    from .model import model_files
+    from .errors import model_files
 
     # The weights (the shipped ones by default) are read too, never written.
     paths = _output_paths(tests, out, [*tests, *(templates or []), *model_files(weights or shipped_weights())])

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .colour import IDENTITY_CHANNELS
-from .errors import ModelError
+from .errors import ModelError, model_files
 
 DEFAULT_CONFIG = {
     "dim": 64,
@@ -64,17 +64,6 @@ def model_config(config) -> dict:
     if full["dim"] % full["heads"]:
         raise ModelError(f"model setting dim ({full['dim']}) must be a multiple of heads ({full['heads']})")
     return full
-
-
-def model_files(path: str | Path) -> tuple[Path, Path]:
-    """The weights and configuration files of the model at ``path`` (``path.safetensors``,
-    ``path.json``; given with either suffix, the same pair). The suffix is added, not put in
-    place of one: ``runs/model.v2`` is ``runs/model.v2.safetensors``."""
-    text = str(path)
-    for suffix in (".safetensors", ".json"):
-        if text.endswith(suffix):
-            text = text[: -len(suffix)]
-    return Path(text + ".safetensors"), Path(text + ".json")
 
 
 class FourierEmbedding(nn.Module):

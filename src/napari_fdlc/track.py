@@ -262,9 +262,15 @@ class _Reference:
 
 
 def _match_rate(log_p: np.ndarray) -> float:
-    """Geometric mean over test neurons of p(matched): how willing the model is to match this
-    placement (the model puts its mass on "no match" when the worms are not aligned)."""
-    return float(np.exp(np.log1p(-np.exp(np.minimum(log_p[:, -1], -1e-6))).mean()))
+    """Geometric mean of p(matched) over the test neurons that could be matched (the likeliest
+    as many as the reference has): how willing the model is to match this placement (it puts
+    its mass on "no match" when the worms are not aligned). Over every neuron, a volume with
+    more neurons than its reference (neurons the first volume lacked) looked like a jump."""
+    matched = np.log1p(-np.exp(np.minimum(log_p[:, -1], -1e-6)))
+    can = log_p.shape[1] - 1
+    if len(matched) > can:
+        matched = np.sort(matched)[len(matched) - can:]
+    return float(np.exp(matched.mean())) if len(matched) else 0.0
 
 
 def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: TrackSettings, fit: bool = True) -> dict:
@@ -356,20 +362,30 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
         return found
     rest = [i for i in range(len(chunk)) if found[i] is None]
     chain = ref.warp
+
+    def geometric_chain(indices: list[int], chain: Warp) -> list[Warp]:
+        """Each volume placed from the one before; one the chain loses (it pairs under
+        ``lost_fraction`` of the neurons it could pair: a jump) is searched in full and the
+        chain restarts from there."""
+        warps = []
+        for i in indices:
+            warp, choice = _geometric_step(ref, chunk[i], chain, s, pairs=True)
+            pairable = max(1, min(len(chunk[i]), len(ref.xyz)))  # a smaller reference pairs fewer
+            paired = (choice >= 0).sum() / pairable
+            searched[i] = False
+            if paired < s.lost_fraction:
+                out = _full_search(identifier, ref, [chunk[i]], s)[0]
+                again, choice2 = _geometric_step(ref, chunk[i], _finish(identifier, ref, chunk[i], out, s)["warp"], s, pairs=True)
+                if (choice2 >= 0).sum() / pairable > paired:
+                    warp, searched[i] = again, True
+            chain = warp
+            warps.append(warp)
+        return warps
+
     if rest:
         if s.placement == "geometry":
-            warps: list[Warp] = []
-            for i in rest:
-                warp, choice = _geometric_step(ref, chunk[i], chain, s, pairs=True)
-                paired = (choice >= 0).mean()
-                if paired < s.lost_fraction:
-                    # Lost (a jump): search this volume in full, restart from there.
-                    out = _full_search(identifier, ref, [chunk[i]], s)[0]
-                    again, choice2 = _geometric_step(ref, chunk[i], _finish(identifier, ref, chunk[i], out, s)["warp"], s, pairs=True)
-                    if (choice2 >= 0).mean() > paired:
-                        warp, searched[i] = again, True
-                chain = warp
-                warps.append(warp)
+            warps = geometric_chain(rest, chain)
+            chain = warps[-1]
         else:
             warps = [ref.warp] * len(rest)
         outs = _placed(follower, ref, [chunk[i] for i in rest], warps, s)
@@ -386,16 +402,18 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
                 if searched[i] or found[i]["rate"] >= s.research_ratio * ref.first_rate:
                     continue
                 again = _finish(identifier, ref, chunk[i], _full_search(identifier, ref, [chunk[i]], s)[0], s)
-                if again["rate"] <= found[i]["rate"]:
+                # judged by the model that answered the chained placement (rates of two models
+                # do not compare): the follower at the searched placement
+                rate = _match_rate(_placed(follower, ref, [chunk[i]], [again["warp"]], s)[0][0])
+                if rate <= found[i]["rate"]:
                     continue
                 found[i], searched[i], chain = again, True, again["warp"]
                 later = rest[k + 1:]
-                warps = []
-                for j in later:
-                    chain = _geometric_step(ref, chunk[j], chain, s)
-                    warps.append(chain)
-                for j, out in zip(later, _placed(follower, ref, [chunk[j] for j in later], warps, s)):
-                    found[j] = _finish(follower, ref, chunk[j], out, s, fit=own and (j == last or s.refine_steps > 0))
+                if later:  # the rest of the chunk chained again from there, as the first pass did
+                    warps = geometric_chain(later, chain)
+                    chain = warps[-1]
+                    for j, out in zip(later, _placed(follower, ref, [chunk[j] for j in later], warps, s)):
+                        found[j] = _finish(follower, ref, chunk[j], out, s, fit=own and (j == last or s.refine_steps > 0))
         if s.placement == "model":
             lost = [i for i in rest if found[i]["rate"] < s.research_ratio * ref.first_rate]
             for i, out in zip(lost, _full_search(identifier, ref, [chunk[i] for i in lost], s)):
@@ -513,13 +531,16 @@ def track(
         for k in range(len(chunk)):
             found = [pr[k] for pr in per_ref]
             if s.combine == "best" or len(refs) == 1:
-                used = int(np.argmax([f["rate"] for f in found]))
-                # The assignment onto the reference's own neurons is the answer (IDs relabel them).
-                f, ref = found[used], refs[used]
-                p = np.exp(f["log_p"])
-                rows = np.arange(len(p))
-                tid = np.where(f["choice"] >= 0, ref.ids[np.maximum(f["choice"], 0)], UNTRACKED)
-                conf = np.where(f["choice"] >= 0, p[rows, np.maximum(f["choice"], 0)], np.clip(1 - p[:, :-1].sum(1), 0, 1))
+                # The assignment onto the best-matched reference's own neurons is the answer (IDs
+                # relabel them); a neuron it leaves untracked (one that reference lacks) takes the
+                # ID another reference gives it, if no neuron has it yet.
+                order = np.argsort([-f["rate"] for f in found], kind="stable")
+                used = int(order[0])
+                tid, conf = _ids_from(found[used], refs[used])
+                for other in order[1:]:
+                    more, more_conf = _ids_from(found[other], refs[other])
+                    fill = (tid == UNTRACKED) & (more != UNTRACKED) & ~np.isin(more, tid)
+                    tid, conf = np.where(fill, more, tid), np.where(fill, more_conf, conf)
             else:
                 probs = np.mean([_id_probs(f, ref, n_ids) for f, ref in zip(found, refs)], axis=0)
                 used = -1
@@ -533,12 +554,27 @@ def track(
     return result
 
 
+def _ids_from(found: dict, ref: _Reference) -> tuple[np.ndarray, np.ndarray]:
+    """Track IDs and their probabilities from one reference's assignment (``found``)."""
+    p = np.exp(found["log_p"])
+    rows = np.arange(len(p))
+    choice = np.maximum(found["choice"], 0)
+    tid = np.where(found["choice"] >= 0, ref.ids[choice], UNTRACKED)
+    conf = np.where(found["choice"] >= 0, p[rows, choice], np.clip(1 - p[:, :-1].sum(1), 0, 1))
+    return tid, conf
+
+
 def _assign_ids(probs: np.ndarray, no_match_weight: float) -> tuple[np.ndarray, np.ndarray]:
     choice = assign(probs, None, no_match_weight)
     no_match = np.clip(1.0 - probs.sum(axis=1), 0.0, 1.0)
     rows = np.arange(len(probs))
     conf = np.where(choice >= 0, probs[rows, np.maximum(choice, 0)], no_match)
     return choice.astype(int), conf
+
+
+def _too_few_to_register(volume: NeuronTable) -> bool:
+    """Under 3 distinct positions (an out-of-focus time point): no registration can place it."""
+    return len(np.unique(volume.xyz, axis=0)) < 3
 
 
 def _track_cpd(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, progress) -> TrackResult:
@@ -552,8 +588,11 @@ def _track_cpd(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, progr
     result = TrackResult([], [], names, [], list(seq.times), list(seq.sources))
     moved = None
     for k, vol in enumerate(seq.volumes):
-        probs, moved = cpd_search(ref, vol) if moved is None else cpd_follow(moved, vol)
-        tid, conf = _assign_ids(probs[:, :-1], s.no_match_weight)
+        if _too_few_to_register(vol):  # untracked, and the next volume goes on from the one before
+            tid, conf = np.full(len(vol), UNTRACKED), np.ones(len(vol))
+        else:
+            probs, moved = cpd_search(ref, vol) if moved is None else cpd_follow(moved, vol)
+            tid, conf = _assign_ids(probs[:, :-1], s.no_match_weight)
         result.track_id.append(tid)
         result.confidence.append(conf)
         result.info.append({"reference": 0})
@@ -573,12 +612,16 @@ def _track_geometry(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, 
     result = TrackResult([], [], ref.table.label_strings(), [], list(seq.times), list(seq.sources))
     warp = None
     for k, vol in enumerate(seq.volumes):
-        if warp is None:
-            probs = floor_match(ref.table, vol)[:, :-1]
-            choice = np.where(probs.max(1) > 0, probs.argmax(1), UNTRACKED)
-            ok = choice >= 0
-            warp = fit_warp(vol.xyz, ref.xyz[np.maximum(choice, 0)], ok.astype(float), s.warp_sigma_um, s.warp_smoothness)
-        warp, choice = _geometric_step(ref, vol, warp, s, pairs=True)
+        if warp is None and _too_few_to_register(vol):  # nothing to start the chain from: the next one
+            choice = np.full(len(vol), UNTRACKED)
+        else:
+            if warp is None:
+                probs = floor_match(ref.table, vol)[:, :-1]
+                choice = np.where(probs.max(1) > 0, probs.argmax(1), UNTRACKED)
+                ok = choice >= 0
+                warp = fit_warp(vol.xyz, ref.xyz[np.maximum(choice, 0)], ok.astype(float), s.warp_sigma_um,
+                                s.warp_smoothness)
+            warp, choice = _geometric_step(ref, vol, warp, s, pairs=True)
         result.track_id.append(choice)
         # the chain is certain either way: of the partner it pairs, or that there is none
         result.confidence.append(np.ones(len(choice)))
