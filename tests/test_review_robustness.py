@@ -404,3 +404,63 @@ def test_seeding_never_gives_a_name_held_by_the_sessions_own_decision_to_a_secon
     s.seed_decisions({0: Decision("", float("nan"), "auto"), 2: Decision("AVAL", 1.0, "corrected")})
     named = [n for n in s.final_names() if n]
     assert s.user_id.count("AVAL") == 1 and len(named) == len(set(named)), s.final_names()
+
+
+# ----- session 33's review ----------------------------------------------------------------------
+
+
+def test_typing_a_double_question_mark_marks_unsure_instead_of_clearing_the_decision():
+    """'??' typed in Name marks the current name unsure, as '?' does; it cleared the user's
+    correction ('??' parses to no name, which means clear)."""
+    s = _session()
+    s.assign(2, "AVAR")  # a correction: the machine said RMDL
+    s.assign(2, "??")
+    assert (s.user_id[2], s.status[2]) == ("AVAR", "unsure")
+
+
+def test_undoing_an_edit_made_before_seeding_keeps_the_seeded_decisions():
+    """Seeded decisions are the starting state: the history restarts from them. Set in place,
+    an undo of an earlier edit restored a state without them (the seeded decision lost)."""
+    s = _session()
+    s.assign(0, "SMDVL")
+    s.seed_decisions({2: Decision("RMDL", 1.0, "accepted")})
+    assert s.user_id == ["SMDVL", "", "RMDL", ""]
+    assert s.undo() is None  # the history restarts from the seeded state
+    assert s.user_id == ["SMDVL", "", "RMDL", ""], s.user_id
+
+
+def test_neuropal_id_export_with_one_missing_colour_keeps_the_other_neurons_colours(tmp_path):
+    """A neuron without a colour reading leaves its cell empty in the NeuroPAL_ID export; the
+    channel's z-score was NaN for every neuron (read back, the channel was gone)."""
+    t = _table()
+    t.colours["R"][1] = np.nan
+    s = ReviewSession(t, make_labelling(NAMES, PROBS), voxel_size_zyx=VOXEL)
+    out = s.export(tmp_path / "npid.csv", format="neuropal_id")
+    df = pd.read_csv(out, skiprows=6)
+    red = df["Z-Scored Red"].to_numpy(dtype=float)
+    assert np.isfinite(np.delete(red, 1)).all(), red
+    back = read_table(out)
+    assert "R" in back.colours  # the channel survives the round trip
+
+
+def test_a_decision_exactly_at_the_carry_distance_is_carried():
+    """A decision goes to a neuron re-detected exactly 1.5 µm away ('within 1.5 µm'): the
+    KD-tree's bound is exclusive, and it was dropped."""
+    old = ReviewSession(NeuronTable(np.array([[10.0, 10.0, 10.0], [30.0, 30.0, 30.0]])),
+                        make_labelling(["AVAL", "AVAR"], np.array([[0.9, 0.05], [0.05, 0.9]])))
+    old.accept(0)
+    carried = carry_decisions(old, np.array([[10.0, 10.0, 11.5], [30.0, 30.0, 30.0]]))
+    assert 0 in carried and carried[0].name == "AVAL", carried
+
+
+def test_a_session_with_a_zero_voxel_size_is_refused_or_reloads(tmp_path):
+    """A voxel size of 0 is refused when the session is made: it was autosaved with every edit,
+    then its own file refused on loading (the decisions out of reach), and x_px exported inf."""
+    path = tmp_path / "worm.tif.fdlc-session.json"
+    try:
+        s = ReviewSession(_table(), make_labelling(NAMES, PROBS), voxel_size_zyx=(0.0, 0.25, 0.25), path=path)
+    except FdlcError:
+        return  # refused up front: fine
+    s.accept(0)
+    assert path.is_file()
+    assert ReviewSession.load(path).status[0] == "accepted"

@@ -349,3 +349,25 @@ def test_a_neuron_named_without_its_side_is_not_taught_no_match(corpus_path):
     target = _targets(template, test)
     taught_no_match = [written[j] for j in sideless if target[j] == len(template)]
     assert not taught_no_match, f"neurons whose partner the template has, taught as no match: {taught_no_match}"
+
+
+def test_a_template_name_written_without_its_side_does_not_teach_its_partner_no_match():
+    """A fully named template that names a neuron without its side ('ADE') does not teach the
+    test's ADEL 'no match' (its partner is there, which one unknown): only the test side's
+    side-less names were handled (429 test neurons of 35 SF pairs taught 'no match' by one such
+    template)."""
+    from napari_fdlc.train import _targets
+
+    rng = np.random.default_rng(0)
+    template = NeuronTable(rng.normal(size=(20, 3)) * 10, labels=["ADE"] + [f"N{i}" for i in range(19)])
+    test = NeuronTable(rng.normal(size=(3, 3)) * 10, labels=["ADEL", "N1", "XYZ"])
+    assert _targets(template, test).tolist() == [-1, 2, 20]
+
+
+def test_matching_loss_with_no_valid_target_in_a_padded_batch_is_zero_not_nan():
+    """No target to learn from in a batch with padded template columns (-inf): the loss is 0,
+    not NaN (-inf summed, times 0)."""
+    log_p = torch.full((1, 3, 5), -1.0)
+    log_p[..., 2:4] = -torch.inf  # padded template columns; the last is "no match"
+    loss = matching_loss(log_p, torch.full((1, 3), -1))
+    assert torch.isfinite(loss) and loss.item() == 0.0

@@ -794,3 +794,33 @@ def test_train_no_calibrate_with_calibrate_only_is_refused(tmp_path, monkeypatch
                "--calibrate-only", "--no-calibrate"])
     assert not called, "the checkpoint was calibrated although --no-calibrate was given"
     assert rc == 2
+
+
+def test_a_training_run_that_diverges_stops_with_one_line(tmp_path, fake_corpus, capsys):
+    """A learning rate that makes the weights diverge stops the run in one line, exit 2 (it
+    ended in a scipy traceback at the next validation: NaN probabilities)."""
+    config = tmp_path / "fast.json"
+    config.write_text(json.dumps({**TINY, "lr": 1e4}))
+    assert _train(fake_corpus, config, tmp_path / "m", "--steps", "6") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "diverged" in err[0], err
+
+
+def test_max_neurons_below_a_training_pair_is_refused_before_training(tmp_path, fake_corpus, capsys):
+    """max_neurons below 4 is refused before training: no example could ever be made, and the
+    run spent seconds drawing pairs, then blamed the worms ('share too few named neurons')."""
+    config = tmp_path / "small.json"
+    config.write_text(json.dumps({**TINY, "max_neurons": 3}))
+    assert _train(fake_corpus, config, tmp_path / "m") == 2
+    assert "max_neurons" in capsys.readouterr().err
+
+
+def test_resume_does_not_take_the_device_the_checkpoint_trained_on(stopped_run, fake_corpus, tiny_config):
+    """--resume without --config takes the checkpoint's recipe, not the device it ran on: a
+    checkpoint trained on CUDA was refused on a machine without one ('--device cuda: no CUDA
+    device here', for a flag never given)."""
+    meta_path = stopped_run.with_suffix(".json")
+    meta = json.loads(meta_path.read_text())
+    meta["train_config"]["device"] = "nonexistent-device"
+    meta_path.write_text(json.dumps(meta))
+    assert run("train", "--corpus", fake_corpus, "--no-calibrate", "--out", stopped_run, "--steps", "6", "--resume") == 0

@@ -254,7 +254,7 @@ def matching_loss(log_probs, target, negative=None, entropy_weight=0.0):
         target[negative] = torch.where(target[negative] >= 0, m, target[negative])
     valid = target >= 0
     if not valid.any():
-        return log_probs.sum() * 0.0
+        return log_probs[..., -1].sum() * 0.0  # the no-match column is finite (padded columns are -inf)
     picked = log_probs.gather(-1, target.clamp(min=0)[..., None])[..., 0]
     return -(picked[valid]).mean()
 

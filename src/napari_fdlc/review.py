@@ -226,7 +226,9 @@ def carry_decisions(old, xyz_um: np.ndarray, max_distance_um: float = 1.5) -> di
     if not decided or len(xyz_um) == 0:
         return {}
     rows = np.array(sorted(decided))
-    dist, idx = cKDTree(xyz_um).query(np.asarray(old_xyz)[rows], k=min(4, len(xyz_um)), distance_upper_bound=max_distance_um)
+    # the bound is exclusive in cKDTree: "within 1.5 µm" includes 1.5
+    reach = np.nextafter(max_distance_um, np.inf)
+    dist, idx = cKDTree(xyz_um).query(np.asarray(old_xyz)[rows], k=min(4, len(xyz_um)), distance_upper_bound=reach)
     dist, idx = dist.reshape(len(rows), -1), idx.reshape(len(rows), -1)
     pairs = sorted(
         (float(d), int(r), int(j)) for r, ds, js in zip(rows, dist, idx) for d, j in zip(ds, js) if np.isfinite(d)
@@ -305,7 +307,7 @@ class ReviewSession:
     ) -> None:
         n = len(table)
         self.threshold = _check_threshold(threshold)
-        self.voxel_size_zyx = tuple(float(v) for v in voxel_size_zyx) if voxel_size_zyx is not None else None
+        self.voxel_size_zyx = _check_voxel_size(voxel_size_zyx)
         self.image = os.fspath(image) if image is not None else None  # a Path too (saved as JSON text)
         self.path = Path(path) if path is not None else None
         self.vocabulary: list[str] = sorted(set(names or ()))
@@ -543,9 +545,6 @@ class ReviewSession:
                 raise TypeError(f"extra is {type(extra).__name__}, not an object of columns")
             extra = pd.DataFrame({k: v for k, v in extra.items() if isinstance(v, list) and len(v) == n}, index=range(n))
             table = NeuronTable(xyz, colours, extra=extra, source=source)
-            voxel = d.get("voxel_size_zyx")
-            if voxel is not None and (len(voxel) != 3 or not all(math.isfinite(float(v)) and float(v) > 0 for v in voxel)):
-                raise ValueError(f"voxel_size_zyx {voxel!r} is not three positive numbers")
             session = cls(
                 table,
                 threshold=float(d.get("threshold", DEFAULT_THRESHOLD)),
@@ -566,7 +565,7 @@ class ReviewSession:
             order = [int(i) for i in d.get("order") or range(n)]
             s.order = order if sorted(order) == list(range(n)) else list(range(n))
             session.settings = _known_settings(d.get("settings"))
-        except (KeyError, TypeError, ValueError, IndexError, OverflowError) as exc:
+        except (KeyError, TypeError, ValueError, IndexError, OverflowError, FdlcError) as exc:
             raise FdlcError(f"{source}: damaged session file ({type(exc).__name__}: {exc})") from None
         bad = [st for st in s.status if st not in STATUSES]
         lengths = {len(s.auto_id), len(s.user_id), len(s.status), len(s.user_conf), len(s.auto_conf), len(s.cand_p)}
@@ -680,7 +679,8 @@ class ReviewSession:
     def assign(self, i: int, name: str) -> bool:
         """Give neuron ``i`` the name ``name`` ('AVAL?' = unsure; '' clears the decision)."""
         i = self._row(i)
-        if str(name).strip() == "?":  # 'unsure' of the current name (as U), not a name cleared
+        text = str(name).strip()
+        if text and not text.strip("?"):  # '?' or '??': 'unsure' of the current name (as U), not a name cleared
             return self.mark_unsure(i)
         clean, conf = parse_name(name)
         if not clean:
@@ -749,9 +749,9 @@ class ReviewSession:
         }
 
     def seed_decisions(self, decisions: dict[int, "Decision"]) -> None:
-        """Set user decisions as the starting state (not an edit: nothing to undo), e.g. those
-        of an earlier session or of a table read back from our CSV. Names held twice are
-        dropped with a warning."""
+        """Set user decisions as the starting state (not an edit: the undo history restarts from
+        it), e.g. those of an earlier session or of a table read back from our CSV. Names held
+        twice are dropped with a warning."""
         s = self._s
         # Every row checked before any is set: a row the table lacks leaves the session as it was.
         given = {self._row(i): d for i, d in decisions.items()}
@@ -771,6 +771,10 @@ class ReviewSession:
                 s.auto_conf[i] = d.auto_conf if d.auto_conf is not None else s.auto_conf[i]
             if d.candidates is not None and any(d.candidates[0]):  # what Clear offers again there
                 s.cand[i], s.cand_p[i] = list(d.candidates[0]), np.asarray(d.candidates[1], dtype=float)
+        # The starting state: the history restarts from it (set in place, an undo of an earlier
+        # edit would have restored a state without the seeded decisions)
+        self._undo.clear()
+        self._redo.clear()
         self._changed("edit")
 
     # ----- neurons added, removed or moved in the layer ----------------------------------------
@@ -948,6 +952,20 @@ def _known_settings(raw) -> dict:
     if not isinstance(settings.get("voxel_size_set", False), bool):
         del settings["voxel_size_set"]
     return settings
+
+
+def _check_voxel_size(voxel) -> tuple[float, float, float] | None:
+    """Three finite positive numbers (µm), or None (unknown). A session saved with a zero voxel
+    size could not be loaded again (its decisions out of reach) and exported x_px = inf."""
+    if voxel is None:
+        return None
+    try:
+        values = tuple(float(v) for v in voxel)
+    except (TypeError, ValueError):
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) and v > 0 for v in values):
+        raise FdlcError(f"voxel_size_zyx {voxel!r} is not three positive numbers (µm)")
+    return values
 
 
 def _check_threshold(t) -> float:

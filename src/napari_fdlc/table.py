@@ -512,8 +512,10 @@ def write_neuropal_id(
     for ours, theirs in [("R", "Z-Scored Red"), ("G", "Z-Scored Green"), ("B", "Z-Scored Blue"), ("W", "Z-Scored White")]:
         if ours in table.colours:
             v = table.colours[ours]
-            z = (v - v.mean()) / (v.std() or 1.0)
-            rows[theirs] = [f"{x:.4f}" for x in z]
+            finite = np.isfinite(v)  # a neuron without a reading leaves its cell empty, not the column NaN
+            spread = v[finite].std() if finite.any() else 0.0
+            z = (v - (v[finite].mean() if finite.any() else 0.0)) / (spread or 1.0)
+            rows[theirs] = [f"{x:.4f}" if np.isfinite(x) else "" for x in z]
     preamble = [
         "Version,napari-fdlc",
         "GFP,0",

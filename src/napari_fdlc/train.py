@@ -147,6 +147,8 @@ class TrainConfig:
         for name in ("max_neurons", "frames_apart", "stale_warp"):
             if getattr(self, name) < 1:
                 fail(name, "at least 1")
+        if self.task == "identify" and self.max_neurons < 4:  # else no example could ever be made
+            fail("max_neurons", "at least 4 (a training pair needs 4 matched neurons)")
         if self.val_worms_per_lab < 0:
             fail("val_worms_per_lab", "0 or more")
         low, high = self.motion
@@ -212,8 +214,8 @@ class TrainConfig:
             raise FdlcError(f"{path}: not a readable JSON training configuration ({exc})") from None
         if isinstance(data, dict) and "train_config" in data:
             data = data["train_config"]
-            if isinstance(data, dict):  # when that run was told to stop is not part of its recipe
-                data = {**data, "stop_at": None, "time_limit_min": None}
+            if isinstance(data, dict):  # when that run was told to stop, and where it ran, are not its recipe
+                data = {**data, "stop_at": None, "time_limit_min": None, "device": None}
         if not isinstance(data, dict):
             raise FdlcError(f"{path}: a training configuration is a JSON object of settings")
         unknown = set(data) - set(cls.__dataclass_fields__)
@@ -278,9 +280,11 @@ def _targets(template: NeuronTable, test: NeuronTable) -> np.ndarray:
     for j, name in enumerate(test.labels):
         if name in index:
             target[j] = index[name]
-        elif name and template_complete and not (name + "L" in index or name + "R" in index):
+        elif name and template_complete and not (name + "L" in index or name + "R" in index) \
+                and not (name[-1:] in ("L", "R") and name[:-1] in index):
             # a named neuron the (fully named) template does not have; a name written without
-            # its side (a few SF worms' "AIB") has its partner there, which one unknown
+            # its side (a few SF worms' "AIB"), in the test or in the template, has its partner
+            # there, which one unknown
             target[j] = m
     return target
 
@@ -706,13 +710,17 @@ def train(cfg: TrainConfig, log=print) -> dict:
         colour = model.config["colour_channels"] > 0
         log_p = model(a, t, am, tm, ac if colour else None, tc if colour else None)
         loss = matching_loss(log_p, target, negative)
+        value = loss.item()
+        if not math.isfinite(value):  # the best checkpoint saved so far stays as it is
+            raise FdlcError(f"training diverged at step {step} (the loss is not a finite number): lower lr "
+                            f"(now {cfg.lr:g})")
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         sched.step()
-        running.append(loss.item())
-        progress.set_postfix(loss=f"{loss.item():.3f}", refresh=False)
+        running.append(value)
+        progress.set_postfix(loss=f"{value:.3f}", refresh=False)
         elapsed = (time.time() - start) / 60
         out_of_time = (cfg.time_limit_min is not None and elapsed > cfg.time_limit_min) or step == cfg.stop_at
         if step % cfg.eval_every == 0 or step == cfg.steps or out_of_time:

@@ -826,7 +826,7 @@ class AutoLabelWidget(QWidget):
             if previous_snapshot is not None and len(previous_snapshot[0]) and given_table is None:
                 from scipy.spatial import cKDTree
 
-                gap, _ = cKDTree(table.xyz).query(previous_snapshot[0], distance_upper_bound=1.5)
+                gap, _ = cKDTree(table.xyz).query(previous_snapshot[0], distance_upper_bound=np.nextafter(1.5, 2))
                 missing = int(np.sum(~np.isfinite(gap)))
             if own_decisions is not None:
                 carried = own_decisions
