@@ -261,14 +261,15 @@ class _Reference:
         self.first_rate = None  # the following model's match rate on the first volume (placement "model")
 
 
-def _match_rate(log_p: np.ndarray) -> float:
-    """Geometric mean of p(matched) over the test neurons that could be matched (the likeliest
-    as many as the reference has): how willing the model is to match this placement (it puts
-    its mass on "no match" when the worms are not aligned). Over every neuron, a volume with
-    more neurons than its reference (neurons the first volume lacked) looked like a jump."""
+def _match_rate(log_p: np.ndarray, matchable: bool = False) -> float:
+    """Geometric mean over test neurons of p(matched): how willing the model is to match this
+    placement (the model puts its mass on "no match" when the worms are not aligned). With
+    ``matchable``, over the likeliest as many as the reference has: the yardstick of a jump,
+    where a volume with more neurons than its reference (neurons the first volume lacked) must
+    not look like one. (Over every neuron it chooses better between references.)"""
     matched = np.log1p(-np.exp(np.minimum(log_p[:, -1], -1e-6)))
     can = log_p.shape[1] - 1
-    if len(matched) > can:
+    if matchable and len(matched) > can:
         matched = np.sort(matched)[len(matched) - can:]
     return float(np.exp(matched.mean())) if len(matched) else 0.0
 
@@ -277,7 +278,7 @@ def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: Tra
     """Calibrated, colour-fused log p, its one-to-one assignment onto the reference's neurons,
     and (``fit``) the warp that carries this volume onto the reference, fitted on the assignment."""
     lp, placed, saw = out
-    rate = _match_rate(lp)
+    rate, jump_rate = _match_rate(lp), _match_rate(lp, matchable=True)
     # log likelihood ratios on the real columns, fused with the calibrated answer in one renormalisation
     evidence = identifier._colour_evidence(ref.table, volume, model_saw_colour=saw) if s.use_colour else None
     if s.position_sigma_um > 0:
@@ -290,7 +291,7 @@ def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: Tra
     weight[weight < s.warp_min_prob] = 0.0
     target = ref.xyz[np.maximum(choice, 0)]
     warp = fit_warp(volume.xyz, target, weight, s.warp_sigma_um, s.warp_smoothness) if fit else None
-    return {"log_p": lp, "choice": choice, "warp": warp, "rate": rate}
+    return {"log_p": lp, "choice": choice, "warp": warp, "rate": rate, "jump_rate": jump_rate}
 
 
 def _full_search(identifier, ref: _Reference, volumes: list[NeuronTable], s: TrackSettings) -> list[tuple]:
@@ -353,11 +354,11 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
             ref.warp = found[first[0]]["warp"]
         if ref.first_rate is None and first:
             # the yardstick for "lost" below, from the model that answers those volumes
-            ref.first_rate = _match_rate(_placed(follower, ref, [chunk[first[0]]], [ref.warp], s)[0][0])
+            ref.first_rate = _match_rate(_placed(follower, ref, [chunk[first[0]]], [ref.warp], s)[0][0], matchable=True)
     for i in range(len(chunk)):
         if found[i] is None and not len(chunk[i]):  # no rows to answer
             found[i] = {"log_p": np.zeros((0, len(ref.xyz) + 1)), "choice": np.zeros(0, dtype=int),
-                        "warp": ref.warp, "rate": 0.0, "searched": False}
+                        "warp": ref.warp, "rate": 0.0, "jump_rate": 0.0, "searched": False}
     if ref.warp is None:  # no volume with neurons yet: the next chunk searches
         return found
     rest = [i for i in range(len(chunk)) if found[i] is None]
@@ -399,13 +400,13 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
             # most neurons with some neighbour: a 45° turn, a 10 µm shift) shows in the model's
             # match rate: that volume is searched in full, and the chain goes on from it.
             for k, i in enumerate(rest):
-                if searched[i] or found[i]["rate"] >= s.research_ratio * ref.first_rate:
+                if searched[i] or found[i]["jump_rate"] >= s.research_ratio * ref.first_rate:
                     continue
                 again = _finish(identifier, ref, chunk[i], _full_search(identifier, ref, [chunk[i]], s)[0], s)
                 # judged by the model that answered the chained placement (rates of two models
                 # do not compare): the follower at the searched placement
-                rate = _match_rate(_placed(follower, ref, [chunk[i]], [again["warp"]], s)[0][0])
-                if rate <= found[i]["rate"]:
+                rate = _match_rate(_placed(follower, ref, [chunk[i]], [again["warp"]], s)[0][0], matchable=True)
+                if rate <= found[i]["jump_rate"]:
                     continue
                 found[i], searched[i], chain = again, True, again["warp"]
                 later = rest[k + 1:]
@@ -415,7 +416,7 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
                     for j, out in zip(later, _placed(follower, ref, [chunk[j] for j in later], warps, s)):
                         found[j] = _finish(follower, ref, chunk[j], out, s, fit=own and (j == last or s.refine_steps > 0))
         if s.placement == "model":
-            lost = [i for i in rest if found[i]["rate"] < s.research_ratio * ref.first_rate]
+            lost = [i for i in rest if found[i]["jump_rate"] < s.research_ratio * ref.first_rate]
             for i, out in zip(lost, _full_search(identifier, ref, [chunk[i] for i in lost], s)):
                 again = _finish(identifier, ref, chunk[i], out, s)
                 if again["rate"] > found[i]["rate"]:
