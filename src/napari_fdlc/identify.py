@@ -1108,7 +1108,7 @@ def _best_given_fixed(willingness: np.ndarray, mirrored, agreement: np.ndarray) 
     placement, one fixed neuron's log p chose among poses by its noise (a wrong mirrored start
     won, and a template's answer fell from 73 to 9 % top-1 once one right name was confirmed).
     One name cannot tell a worm named the wrong way round from one neuron given its partner's
-    name, and is taken as the first (benchmarks/fixed_names.py, docs/handedness.md)."""
+    name, and is taken as the first (benchmarks/fixed_names.py, docs/benchmarks.md)."""
     mirrored = np.asarray(mirrored, bool)
     willingness = np.asarray(willingness, float)
     winners = [int(np.flatnonzero(mirrored == m)[np.argmax(willingness[mirrored == m])])
