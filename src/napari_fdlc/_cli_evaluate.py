@@ -8,13 +8,14 @@ for docs/accuracy.md.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .errors import FdlcError, atomic_write, check_output, warn
+from .errors import FdlcError, _is_stream, atomic_write, check_output, warn
 
 
 BATCH_ROW = "colour, the lab's worms in one call"
@@ -40,10 +41,11 @@ def run(args) -> int:
             raise FdlcError(f"--{flag.replace('_', '-')} must be 0 or more (got {getattr(args, flag)})")
     from .corpus import refuse_out_in_corpus
     from .errors import model_files
+    from .identify import shipped_weights
 
-    # The model and the corpus are read, never written: a report over the weights' JSON or a
-    # worm's table would destroy them.
-    out = check_output(args.out, inputs=model_files(args.weights) if args.weights else (), create_folder=True)
+    # The model (the shipped one by default) and the corpus are read, never written: a report
+    # over the weights' JSON or a worm's table would destroy them.
+    out = check_output(args.out, inputs=model_files(args.weights or shipped_weights()), create_folder=True)
     refuse_out_in_corpus(out, args.corpus, "report")
     report = evaluate_corpus(
         corpus=args.corpus, labs=args.labs, weights=args.weights, pairs_per_lab=args.pairs_per_lab,
@@ -68,6 +70,7 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
     from .simulate import simulate_worm
 
     # what reproduces this report: the options given, as given
+    corpus = corpus or os.environ.get("FDLC_CORPUS") or None  # the report says which corpus it read
     command = ["fdlc evaluate"] + [f"{flag} {value}" for flag, value in (
         ("--corpus", corpus), ("--labs", " ".join(labs or [])), ("--weights", weights)) if value]
     command += [f"--pairs-per-lab {pairs_per_lab}", f"--panel-worms-per-lab {panel_worms_per_lab}",
@@ -88,7 +91,11 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
         pairs = pair_list(tables, pairs_per_lab, seed=0)
         # The built-in atlas (beside a template, and the panel's) is rebuilt WITHOUT this lab, so
         # the names and positions it offers never come from the worms being scored.
-        atlas = build_atlas([w for w in worms if w.lab != lab])
+        others = [w for w in worms if w.lab != lab]
+        if not others:
+            raise FdlcError(f"lab {lab}: the atlas beside a template and the panel are built from the other labs' "
+                            "worms (a lab is never scored on its own), and the corpus has no other lab")
+        atlas = build_atlas(others)
         methods = {
             ("pairs", "fdlc", "position"): lambda T, t: identifier.label(t, [T], use_colour=False, atlas=atlas),
             ("pairs", "fdlc", "colour"): lambda T, t: identifier.label(t, [T], use_colour=True, atlas=atlas),
@@ -177,7 +184,13 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
     report = "\n".join(lines)
     if out is not None:
         # The plot needs matplotlib (the [test] extra); without it the report is written alone.
-        plotted = _plot_reliability(calib, out.parent / "images" / "calibration.png", reliability)
+        plotted = False
+        if not _is_stream(out):  # beside a file (a stream such as /dev/null has no folder to put it in)
+            try:
+                plotted = _plot_reliability(calib, out.parent / "images" / "calibration.png", reliability)
+            except OSError as exc:  # the finished run is not lost for its plot
+                warn(f"{out.parent / 'images' / 'calibration.png'}: the reliability plot could not be written "
+                     f"({exc.strerror or exc}); the report is written without it")
         with atomic_write(out, "w", encoding="utf-8") as handle:
             handle.write("# Accuracy on the annotated corpus\n\n")
             handle.write(f"Made by `{command}` ({minutes:.1f} min). See docs/benchmarks.md for how to read it.\n\n")

@@ -12,10 +12,11 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from .errors import FdlcError
-from .table import NeuronTable, read_table
+from .table import NeuronTable, read_volume
 
 LABS = ("NP", "EY", "KK", "SF", "SK1")
 
@@ -64,9 +65,14 @@ def load_corpus(path: str | os.PathLike | None = None, labs: tuple[str, ...] | l
         # (pandas warns that the empty last field is dropped: it is meant)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", pd.errors.ParserWarning)
-            index = pd.read_csv(index_path, dtype=str, keep_default_na=False, index_col=False)
+            index = pd.read_csv(index_path, dtype=str, keep_default_na=False, index_col=False, skip_blank_lines=False)
     except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError) as exc:
         raise FdlcError(f"{index_path}: not a readable CSV ({str(exc).splitlines()[0]})") from None
+    index.columns = [str(c).strip() for c in index.columns]  # 'dataset, worm': spaces do not count
+    # blank lines dropped here, not by pandas, so that a row's error names its line in the file
+    lines = np.arange(len(index)) + 2
+    filled = (index.fillna("").astype(str).apply(lambda column: column.str.strip()) != "").any(axis=1).to_numpy()
+    index, lines = index[filled].reset_index(drop=True), lines[filled]
     missing = [c for c in ("dataset", "worm") if c not in index.columns]
     if missing:
         raise FdlcError(f"{index_path}: no column {' or '.join(repr(c) for c in missing)} (it lists the worms: dataset, worm)")
@@ -79,7 +85,7 @@ def load_corpus(path: str | os.PathLike | None = None, labs: tuple[str, ...] | l
         raise FdlcError(f"no worms of lab(s) {', '.join(unknown)} in the corpus (labs: {', '.join(sorted(set(index['dataset'])))})")
     blank = (index["dataset"] == "") | (index["worm"] == "")
     if blank.any():
-        raise FdlcError(f"{index_path}, line {int(blank.to_numpy().argmax()) + 2}: a row without its dataset or worm; "
+        raise FdlcError(f"{index_path}, line {lines[int(blank.to_numpy().argmax())]}: a row without its dataset or worm; "
                         "fill it in or remove it")
     repeated = index.duplicated(["dataset", "worm"])
     if repeated.any():
@@ -92,5 +98,5 @@ def load_corpus(path: str | os.PathLike | None = None, labs: tuple[str, ...] | l
         file = path / row.dataset / f"{row.worm}.csv"
         if not file.is_file():
             raise FdlcError(f"{file}: no such file, though {index_path} lists it; add the file or remove its row")
-        worms.append(Worm(row.dataset, row.worm, read_table(file)))
+        worms.append(Worm(row.dataset, row.worm, read_volume(file, "one worm per corpus table: give each time point a file and a row in worms.csv")))
     return worms

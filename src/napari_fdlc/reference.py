@@ -220,7 +220,9 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
         normal_scores(t, IDENTITY_CHANNELS) if has_colour(t) else None
         for t in tables
     ]
-    reference = int(np.argmax([t.named.sum() for t in tables]))
+    # the best-named worm anchors the alignment; a tie by lab and name, not by the order given
+    counts = [int(t.named.sum()) for t in tables]
+    reference = min(range(len(worms)), key=lambda k: (-counts[k], worms[k].lab, getattr(worms[k], "name", "")))
     mean = {n: canon[reference][i] for i, n in enumerate(tables[reference].labels) if n}
     aligned = [None] * len(tables)
     scales = []
@@ -279,7 +281,7 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
         colour_sd=colour_sd,
         frequency=np.array([len(p) / used for p in pos]),
         worms=used,
-        labs=tuple(sorted({w.lab for w in worms})),
+        labs=tuple(sorted({w.lab for w, a in zip(worms, aligned) if a is not None})),  # the labs it was built from
         worm_scale=float(1.0 / np.median(scales)),
     )
 
