@@ -312,6 +312,7 @@ class ReviewSession:
         self.path = Path(path) if path is not None else None
         self.vocabulary: list[str] = sorted(set(names or ()))
         self.current: int | None = None
+        self._after_deletion = False  # the current neuron is the one before a neuron just deleted
         self.settings: dict = {}  # free-form (e.g. template description, colour on/off)
         self._undo: list[Edit] = []
         self._redo: list[Edit] = []
@@ -800,14 +801,18 @@ class ReviewSession:
             position = {o: r for r, o in enumerate(old.order)}
             s.order = sorted(range(n), key=lambda j: (-1, j) if kept[j] is None else (position.get(kept[j], j), j))
 
-        current, old_order = self.current, list(self._s.order)
-        self._commit(description, change, kind="structure")
         # The review goes on where it was: at the current neuron's new row, or, when it was
-        # deleted (a false detection), at the one before it, so that N goes to the one after.
+        # deleted (a false detection), at the one before it, so that N goes to the one after and
+        # Shift-N stays there. Set before the change is announced: the widget shows the current
+        # neuron as it redraws (it showed the old row number, another neuron, and A/U/C acted on it).
+        current, old_order = self.current, list(self._s.order)
         new_row = {o: j for j, o in enumerate(kept) if o is not None}
-        if current is not None and current not in new_row and current in old_order:
+        deleted = current is not None and current not in new_row and current in old_order
+        if deleted:
             current = next((o for o in reversed(old_order[: old_order.index(current)]) if o in new_row), None)
         self.current = new_row.get(current)
+        self._after_deletion = deleted and self.current is not None
+        self._commit(description, change, kind="structure")
 
     # ----- undo / redo ---------------------------------------------------------------------------
     @property
@@ -852,6 +857,7 @@ class ReviewSession:
     def select(self, i: int | None) -> None:
         """Make ``i`` the current neuron (None: none)."""
         i = None if i is None else self._row(i)
+        self._after_deletion = False
         if i != self.current:
             self.current = i
             self._changed("current", None if i is None else [i])
@@ -861,7 +867,10 @@ class ReviewSession:
         order = self._s.order
         if not order:
             return None
-        if self.current is None or self.current not in order:
+        after_deletion, self._after_deletion = self._after_deletion, False
+        if step < 0 and after_deletion and self.current in order:
+            target = self.current  # the neuron before the one deleted: Shift-N goes there, not past it
+        elif self.current is None or self.current not in order:
             target = order[0] if step > 0 else order[-1]
         else:
             target = order[(order.index(self.current) + step) % len(order)]

@@ -315,7 +315,19 @@ def table_from_layer(layer, use_label: bool = False) -> NeuronTable:
         labels = np.array([p[0] for p in parsed], dtype=object)
         label_conf = np.array([p[1] for p in parsed])
         labels, label_conf = _drop_duplicate_names(labels, label_conf, f"layer '{layer.name}'")
-    return NeuronTable(xyz, colours, labels, label_conf, source=f"layer '{layer.name}'")
+    # the table's other columns (a detection score, an ID of the user's) go on to the export
+    extra = feats[[c for c in feats.columns if not _layer_owned(c)]].reset_index(drop=True)
+    return NeuronTable(xyz, colours, labels, label_conf, extra=extra, source=f"layer '{layer.name}'")
+
+
+# features a layer holds that are not the table's own columns: positions, names, colours, and
+# what a review or a tracking result adds (made again from the session)
+_OWNED = {"label", "user_id", "name", "neuron", "auto_id", "auto_conf", "user_conf", "status", "shown", "t",
+          "track_id", "track_conf", "x_um", "y_um", "z_um", "x_px", "y_px", "z_px", *COLOUR_CHANNELS}
+
+
+def _layer_owned(column) -> bool:
+    return str(column) in _OWNED or str(column).startswith(("cand_", "prob_"))
 
 
 def named_count(layer) -> int:

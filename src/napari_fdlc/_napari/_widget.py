@@ -21,6 +21,7 @@ Tests (and users with their own model) inject the model and templates::
 
 from __future__ import annotations
 
+import re
 import sys
 import threading
 import traceback
@@ -648,6 +649,7 @@ class AutoLabelWidget(QWidget):
             self._notify_warning(reason)
         name = f"file: {Path(path).name}"
         self._file_templates[name] = table
+        self._known_names = None  # its names are offered by the Name field's completer
         self._refresh_choices()
         self.template_combo.setCurrentText(name)
         return name
@@ -1193,15 +1195,20 @@ class AutoLabelWidget(QWidget):
         new_rows = [j for j, o in enumerate(kept) if o is None]
         if new_rows:
             self._fill_colours(colours, xyz, kept, new_rows)
+        if description == "move neuron(s)":  # a point dragged onto another nucleus takes the colour there
+            moved = [int(i) for i in np.atleast_1d(indices) if 0 <= int(i) < n_new] if indices is not None else []
+            if moved:
+                self._fill_colours(colours, xyz, kept, moved, median_otherwise=False)
         extra = old.extra.iloc[[o for o in kept if o is not None]].reset_index(drop=True) if all(o is not None for o in kept) else None
         if extra is None:
             extra = old.extra.reindex([o if o is not None else -1 for o in kept]).reset_index(drop=True)
         table = NeuronTable(xyz, colours, extra=extra, source=old.source)
         session.replace_table(table, kept, description)
 
-    def _fill_colours(self, colours: dict, xyz, kept, new_rows) -> None:
-        """Colours of neurons added by hand: measured in the image on the scale of the others
-        (z-scores across all neurons, as the detector does), else the median."""
+    def _fill_colours(self, colours: dict, xyz, kept, new_rows, median_otherwise: bool = True) -> None:
+        """Colours of neurons added (or moved) by hand: measured in the image on the scale of the
+        others (z-scores across all neurons, as the detector does), else (``median_otherwise``)
+        the median."""
         measured = None
         stack = self._stack
         image = self.session.image if self.session is not None else None
@@ -1221,7 +1228,7 @@ class AutoLabelWidget(QWidget):
         for c, col in colours.items():
             if measured is not None and c in measured:
                 col[new_rows] = measured[c][new_rows]
-            else:
+            elif median_otherwise:
                 col[new_rows] = np.nanmedian(col) if np.isfinite(col).any() else 0.0
 
     def _on_selection(self, *_) -> None:
@@ -1243,7 +1250,7 @@ class AutoLabelWidget(QWidget):
         """Hide automatic names below confidence ``p`` (0-1); user decisions stay shown."""
         from ..review import _check_threshold
 
-        p = _check_threshold(p)
+        p = round(_check_threshold(p), 2)  # the slider's steps: the threshold shown is the one applied
         with self._guarded():
             self.threshold_slider.setValue(int(round(p * 100)))
         self.threshold_label.setText(f"{p:.2f}")
@@ -1261,7 +1268,16 @@ class AutoLabelWidget(QWidget):
         return self._edit(lambda s: s.accept(i), i)
 
     def assign(self, i: int, name: str) -> bool:
-        """Give neuron ``i`` the name ``name`` ('AVAL?' marks it unsure, '' clears)."""
+        """Give neuron ``i`` the name ``name`` ('AVAL?' marks it unsure, '' clears); typed in
+        another case, a name the widget knows (atlas, templates) is taken in its own spelling."""
+        from ..table import parse_name
+
+        typed = str(name).strip()
+        clean, _ = parse_name(typed)
+        known = self._names()
+        same = [n for n in known if n.lower() == clean.lower()] if clean and clean not in known else []
+        if len(same) == 1:
+            name = same[0] + ("?" if typed.endswith("?") else "")
         return self._edit(lambda s: s.assign(i, name), i)
 
     def pick_candidate(self, i: int, k: int) -> bool:
@@ -1394,7 +1410,9 @@ class AutoLabelWidget(QWidget):
 
     def _default_export_path(self, format: str) -> Path:
         key = self.session.image or "neurons"
-        stem = _short_name(key)
+        # an image made in napari is keyed 'layer:<hash>:<name>': its name, with what a file name
+        # cannot hold (':' opens a stream on Windows) replaced
+        stem = re.sub(r'[<>:"/\\|?*]+', "_", _short_name(key.rsplit(":", 1)[-1] if key.startswith("layer:") else key))
         folder = Path(key).parent if (not key.startswith(("sample:", "layer:", "<")) and Path(key).parent.is_dir()) else Path.home()
         from ..review import _writable_folder
 
@@ -1453,8 +1471,9 @@ class AutoLabelWidget(QWidget):
         self._fill_table()
         self._show_current(centre=False)
         names = self._names()
-        if self._completer.model().rowCount() != len(names):
-            self._completer.model().setStringList(names) if hasattr(self._completer.model(), "setStringList") else None
+        model = self._completer.model()
+        if hasattr(model, "setStringList") and model.stringList() != names:
+            model.setStringList(names)
 
     def _names(self) -> list[str]:
         if self._known_names is None:
