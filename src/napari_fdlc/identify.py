@@ -612,8 +612,12 @@ class Identifier:
         if not tests:
             return []
         flags = [self._check(test, templates, use_colour) for test in tests]
-        if len(set(flags)) > 1:  # a test without a colour channel in common goes position only
-            return [self._label_many([test], templates, flag, atlas, fixed)[0] for test, flag in zip(tests, flags)]
+        # A test without a colour channel in common goes position only, and the model takes
+        # colour for a batch only when every test has R, G and B: tests that differ in either are
+        # named apart (a test beside one without B lost the model's colour input: 84 of 152 names)
+        kinds = [(flag, all(self._takes_colour([t, test], flag) for t in templates)) for test, flag in zip(tests, flags)]
+        if len(set(kinds)) > 1:
+            return [self._label_many([test], templates, flag, atlas, fixed, taken)[0] for test, flag in zip(tests, flags)]
         use_colour = flags[0]
         matches = [self.match_many(template, tests, use_colour, fixed) for template in templates]
         infos = [[found[k][1] for found in matches] for k in range(len(tests))]  # per test, per template
@@ -875,8 +879,9 @@ class Identifier:
             return results
         from .reference import make_panel
 
-        names = [np.where(np.asarray(r.auto_conf) >= ADAPT_MIN_CONF, np.asarray(r.auto_id, dtype=object), "")
-                 for r in results]
+        counted = _counted_recordings(tests)  # a tiny test or a copy measures nothing of its own
+        names = [np.where((np.asarray(r.auto_conf) >= ADAPT_MIN_CONF) & c, np.asarray(r.auto_id, dtype=object), "")
+                 for r, c in zip(results, counted)]
         atlas = panel.atlas.with_colours_of(tests, names, ADAPT_MIN_WORMS)
         adapted = int((atlas.colour != panel.atlas.colour).any(axis=1).sum())
         results = self.label_panel_many(tests, make_panel(atlas), use_colour, share_handedness=share_handedness)
@@ -889,7 +894,8 @@ class Identifier:
         """The sign test of :meth:`label_panel_many` over the tests' answers ``results``."""
         if self.settings.chirality != "auto" or len(tests) < 2:
             return results
-        evidence = np.array([handedness_evidence(r, self.settings.mirror_penalty) for r in results])
+        evidence = np.array([handedness_evidence(r, self.settings.mirror_penalty) if c else (0.0, 0.0)
+                             for r, c in zip(results, _counted_recordings(tests))])  # (0, 0): abstains
         decided, k, n = decide_handedness(evidence[:, 0], evidence[:, 1])
         for i, r in enumerate(results):
             if decided and r.info["mirrored"] != (decided == "mirrored"):
@@ -941,8 +947,22 @@ def smaller_worm_note(test: NeuronTable, result: Labelling) -> str | None:
 def can_adapt_colours(tests: list[NeuronTable], use_colour: bool = True) -> bool:
     """Whether :meth:`Identifier.label_panel_many` can measure the panel's colours on these
     tests: with colour, and ``ADAPT_MIN_TESTS`` of them or more having R, G and B."""
-    coloured = [t for t in tests if colour_model.has_colour(t)]
+    coloured = [t for t, c in zip(tests, _counted_recordings(tests)) if c and colour_model.has_colour(t)]
     return use_colour and len(coloured) >= ADAPT_MIN_TESTS
+
+
+def _counted_recordings(tests: list[NeuronTable]) -> list[bool]:
+    """Which tests count as recordings of their own where several decide together (the shared
+    handedness, the colours measured on them): not one of fewer than ``FEW_NEURONS`` neurons (3
+    points always lie in a plane, their mirror image is themselves: a vote by chance; 2 have
+    normal scores of +-0.67 whatever was measured) nor a copy of an earlier one (a file given
+    twice was two votes, and three copies of one worm measured its colours on itself)."""
+    seen, out = set(), []
+    for t in tests:
+        key = hash((t.xyz.tobytes(), tuple((c, v.tobytes()) for c, v in sorted(t.colours.items()))))
+        out.append(len(t) >= FEW_NEURONS and key not in seen)
+        seen.add(key)
+    return out
 
 
 def handedness_evidence(result: Labelling, mirror_penalty: float) -> tuple[float, float]:

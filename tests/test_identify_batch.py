@@ -1,10 +1,6 @@
-"""Defect hunt (session 33, helper hM): several tests named in one call.
-
-`fdlc label a.csv b.csv ...` with the shared handedness rule (the sign test), the colours
-adapted on the call's own recordings (Identifier.label_panel_many), and Identifier.label_many.
-Each test fails on the code as it was found; its docstring says what was expected and what
-happened. Worms are generated from the shipped atlas and named by the shipped model.
-"""
+"""Several tests named in one call (Identifier.label_panel_many's shared handedness and adapted
+colours, Identifier.label_many): a test's answer does not depend on the others but as
+documented. From session 33's review; each docstring says what used to happen."""
 
 from __future__ import annotations
 
