@@ -96,6 +96,8 @@ class Stack:
         _check_unique_roles(self.channel_roles, self.source)
         if self.channel_names is None:
             self.channel_names = [r or f"channel {i}" for i, r in enumerate(self.channel_roles)]
+        elif len(self.channel_names) != self.data.shape[0]:
+            raise ImageError(f"{self.source}: {len(self.channel_names)} channel names for {self.data.shape[0]} channels")
 
     @property
     def shape_zyx(self) -> tuple[int, int, int]:
@@ -516,12 +518,14 @@ def _tifffile_log():
 
 def _check_tiff_complete(tif, series, source: str) -> None:
     """A truncated TIFF still parses; catch image data that points past the end of the file."""
-    size = tif.filehandle.size
     for page in series.pages:
         if page is None:
             raise ImageError(f"{source}: the TIFF is incomplete (missing pages); re-export the file")
         offsets = getattr(page, "dataoffsets", ()) or ()
         counts = getattr(page, "databytecounts", ()) or ()
+        # each page against its own file: a recording split over several OME-TIFF files keeps
+        # pages in companion files bigger than the first
+        size = getattr(getattr(getattr(page, "parent", None), "filehandle", None), "size", None) or tif.filehandle.size
         if offsets and counts and max(o + c for o, c in zip(offsets, counts)) > size:
             raise ImageError(f"{source}: the TIFF is truncated (image data past the end of the file); re-export it")
 
@@ -600,7 +604,9 @@ def _ome_channels(xml: str) -> tuple[list[str | None] | None, list[str | None] |
     except (ElementTree.ParseError, IndexError):
         return None, None
     names = [c.get("Name") or c.get("Fluor") for c in channels]
-    roles = [role_from_name(c.get("Fluor")) for c in channels]
+    if any(names):  # a channel OME leaves unnamed gets a name of its place (None broke every writer)
+        names = [name or f"channel {i}" for i, name in enumerate(names)]
+    roles = roles_from_names([c.get("Fluor") for c in channels])  # a Fluor given twice: ambiguous, dropped
     return names if any(names) else None, roles if any(roles) else None
 
 
@@ -645,6 +651,8 @@ def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None, li
         n_c = int(meta.get("channels", 1) or 1)
         if isinstance(labels, list) and n_c > 1 and len(labels) >= n_c:
             names = list(labels[:n_c])  # ImageJ stores one label per plane, channel fastest
+        elif isinstance(labels, list) and n_c == 1 and labels and len(set(labels)) == 1:
+            names = [labels[0]]  # one channel: every plane carries its name (as write_tiff writes it)
         return [z, y, x], names, None
     return None, None, None
 
@@ -746,6 +754,15 @@ def write_tiff(
     data = np.asarray(stack.data)
     time = "T" if data.ndim == 5 else ""
     names = list(channel_names or stack.channel_names or [r or "" for r in stack.channel_roles])
+    n_channels = data.shape[-4]
+    if len(names) != n_channels:
+        raise ImageError(f"{path}: {len(names)} channel names for {n_channels} channels")
+    writable = {"uint8", "uint16", "int16", "float32"} if not ome else \
+        {"uint8", "uint16", "uint32", "int8", "int16", "int32", "float32", "float64"}
+    if data.dtype.name not in writable:  # tifffile's own error was a bare ValueError / OmeXmlError
+        raise ImageError(f"{path}: {'ImageJ' if not ome else 'OME-TIFF'} cannot hold pixels of type {data.dtype} "
+                         f"({', '.join(sorted(writable))}); convert them first"
+                         + ("" if ome else ", or write OME-TIFF"))
     z, y, x = stack.voxel_size_zyx
     buffer = io.BytesIO()  # tifffile wants a named file or a seekable buffer, not a bare fd
     if ome:

@@ -211,6 +211,21 @@ def _rgbw(image, n_channels: int, names: list[str] | None = None) -> list[str | 
     return max(readings, key=agreement)  # ties: 0-based, as pynwb writers store them
 
 
+def _described_roles(volume, n_channels: int) -> list[str | None] | None:
+    """Roles as write_nwb records them in each optical channel's description, for a file
+    without RGBW_channels (written only when R, G, B and W are all there: a W + GFP stack lost
+    its roles), None when no description is a role."""
+    try:
+        channels = list(getattr(volume, "optical_channel", None) or [])
+    except Exception:
+        return None
+    roles = [str(getattr(c, "description", "") or "").strip() for c in channels]
+    roles = [r if r in images.ROLES else None for r in roles]
+    if len(roles) != n_channels or not any(roles) or len({r for r in roles if r}) != sum(1 for r in roles if r):
+        return None
+    return roles
+
+
 def _placed(idx: np.ndarray, n_channels: int) -> list[str | None] | None:
     if idx.min() < 0 or idx.max() >= n_channels or len(set(idx.tolist())) != idx.size:
         return None
@@ -241,7 +256,7 @@ def read_nwb(
         voxel = _grid_spacing_um(volume)
         names = _volume_channel_names(volume, image)
         n_channels = shape[3] if len(shape) == 4 else 1
-        roles = _rgbw(image, n_channels, names)
+        roles = _rgbw(image, n_channels, names) or _described_roles(volume, n_channels)
         nbytes = int(np.prod(shape)) * np.dtype(dset.dtype).itemsize
         try:
             if nbytes > images.LAZY_BYTES:

@@ -1,0 +1,175 @@
+"""Readers and writers on files as other tools write them, and round trips through our writers
+(session 33's review: each docstring says what used to happen)."""
+
+from __future__ import annotations
+
+import uuid
+
+import numpy as np
+import pytest
+import tifffile
+
+from napari_fdlc.errors import FdlcError
+from napari_fdlc.io import images
+from napari_fdlc.io.images import Stack, read_series, read_stack, write_tiff
+from napari_fdlc.io.nwb import write_nwb
+
+VOXEL = {"PhysicalSizeX": 0.25, "PhysicalSizeY": 0.25, "PhysicalSizeZ": 1.5}
+
+
+def _data(shape, seed=0):
+    return np.random.default_rng(seed).integers(0, 4000, shape).astype(np.uint16)
+
+
+def test_imagej_round_trip_keeps_a_single_channels_name(tmp_path):
+    """Expected: write_tiff(ome=False) of a one-channel stack (TagRFP-T, role W) reads back
+    with its channel name and so its role, as docs/image_formats.md promises ("both read back
+    with voxel size and channel names"; the OME-TIFF round trip does). Actual: the name comes
+    back as 'channel 0' and the role as None: _tiff_metadata reads ImageJ Labels only when the
+    file has more than one channel, although write_tiff wrote one label per plane."""
+    stack = Stack(_data((1, 5, 16, 16)), (1.5, 0.25, 0.3), ["W"], channel_names=["TagRFP-T"])
+    path = tmp_path / "w_only.tif"
+    write_tiff(path, stack, ome=False)
+    got = read_stack(path)
+    assert got.channel_names == ["TagRFP-T"]
+    assert got.channel_roles == ["W"]
+
+
+def test_nwb_round_trip_keeps_roles_without_all_four_rgbw(tmp_path):
+    """Expected: write_nwb then read_stack gives back the stack's channel roles (as the
+    OME-TIFF round trip does, through Fluor). Actual: a stack whose roles are not all of R, G,
+    B, W (here W and GFP, channels named by laser line) comes back with no role at all:
+    write_nwb writes RGBW_channels only when all four are present, and the roles it stores in
+    each OpticalChannel's description are never read back."""
+    stack = Stack(_data((2, 5, 16, 16)), (1.5, 0.25, 0.3), ["W", "GFP"], channel_names=["561 nm", "488 nm"])
+    ome = tmp_path / "w_gfp.ome.tif"
+    write_tiff(ome, stack)
+    assert read_stack(ome).channel_roles == ["W", "GFP"]  # the OME-TIFF round trip keeps them
+    path = tmp_path / "w_gfp.nwb"
+    write_nwb(path, stack)
+    got = read_stack(path)
+    assert got.channel_names == ["561 nm", "488 nm"]
+    assert got.channel_roles == ["W", "GFP"]
+
+
+def test_ome_fluor_given_twice_is_ambiguous_not_a_user_error(tmp_path):
+    """Expected: an OME-TIFF whose two channels carry the same Fluor (two GFP channels) opens,
+    the doubly claimed role dropped as ambiguous, as docs/image_formats.md says of names.
+    Actual: ImageError 'channel role(s) GFP given more than once; give each role once', which
+    blames roles the user never gave; the file cannot be opened without --channels. Cause:
+    _ome_channels turns each Fluor into a role without the ambiguity check of
+    roles_from_names, and finish_stack passes them to Stack, which refuses duplicates."""
+    path = tmp_path / "two_gfp.ome.tif"
+    tifffile.imwrite(path, _data((2, 5, 16, 16)), ome=True, metadata={
+        "axes": "CZYX", **VOXEL, "Channel": {"Name": ["GCaMP 488", "GCaMP 470"], "Fluor": ["GFP", "GFP"]}})
+    got = read_stack(path)
+    assert got.channel_roles == [None, None]
+    assert got.channel_names == ["GCaMP 488", "GCaMP 470"]
+
+
+def _ome_with_an_unnamed_channel(path):
+    data = _data((2, 5, 16, 16))
+    scratch = path.with_name("named.ome.tif")
+    tifffile.imwrite(scratch, data, ome=True, metadata={"axes": "CZYX", **VOXEL, "Channel": {"Name": ["TagRFP-T", "XXX"]}})
+    xml = tifffile.TiffFile(scratch).ome_metadata.replace(' Name="XXX"', "")
+    tifffile.imwrite(path, data, description=xml, metadata=None)  # OME lets a Channel go unnamed
+    return data
+
+
+def test_an_unnamed_ome_channel_can_be_written_again(tmp_path):
+    """Expected: an OME-TIFF with a Channel that has no Name (valid OME; common for DIC or a
+    channel nobody named) reads with a text name for every channel, and the stack can be
+    written to NWB and to an ImageJ TIFF. Actual: channel_names holds None; write_nwb dies with
+    h5py's TypeError "Can't implicitly convert non-string objects to strings", write_tiff
+    (ome=False) with AttributeError 'NoneType' object has no attribute 'encode', and the
+    OME-TIFF round trip names the channel 'None'. Cause: _ome_channels keeps None for a channel
+    without Name or Fluor, and finish_stack passes the list through unchecked."""
+    path = tmp_path / "unnamed.ome.tif"
+    _ome_with_an_unnamed_channel(path)
+    got = read_stack(path)
+    assert all(isinstance(n, str) for n in got.channel_names), got.channel_names
+    assert got.channel_roles == ["W", None]
+    write_nwb(tmp_path / "unnamed.nwb", got)
+    write_tiff(tmp_path / "unnamed_ij.tif", got, ome=False)
+    write_tiff(tmp_path / "again.ome.tif", got)
+    assert "None" not in read_stack(tmp_path / "again.ome.tif").channel_names
+
+
+def test_write_tiff_imagej_of_float64_gives_an_image_error_or_writes(tmp_path):
+    """Expected: write_tiff(ome=False) of a valid Stack of float64 (or int32) voxels either
+    writes an ImageJ hyperstack that reads back (documented: "both read back with voxel size
+    and channel names") or refuses with a one-line ImageError. Actual: tifffile's bare
+    ValueError "the ImageJ format does not support data type 'd'" escapes (int64 / float16 with
+    ome=True likewise raise tifffile's OmeXmlError). Cause: write_tiff passes any dtype to
+    tifffile, whose ImageJ writer takes only uint8, uint16, int16 and float32."""
+    stack = Stack(np.random.default_rng(0).random((2, 5, 16, 16)), (1.5, 0.25, 0.3), ["W", "R"])
+    path = tmp_path / "f64.tif"
+    try:
+        write_tiff(path, stack, ome=False)
+    except FdlcError as exc:
+        assert "\n" not in str(exc)
+        assert not path.exists()
+        return
+    got = read_stack(path)
+    np.testing.assert_allclose(np.asarray(got.data), stack.data, rtol=1e-6)
+
+
+def _multi_file_ome(folder, data, first_t):
+    """An OME-TIFF dataset split over two files (Micro-Manager, bfconvert per time point): the
+    first file holds the OME-XML and time points < first_t, the second the rest."""
+    nt, nc, nz = data.shape[:3]
+    u1, u2 = (f"urn:uuid:{uuid.uuid4()}" for _ in range(2))
+
+    def tiffdata(ts, uid, name):
+        planes = [(t, c, z) for t in ts for c in range(nc) for z in range(nz)]
+        return "".join(f'<TiffData FirstZ="{z}" FirstC="{c}" FirstT="{t}" IFD="{i}" PlaneCount="1">'
+                       f'<UUID FileName="{name}">{uid}</UUID></TiffData>' for i, (t, c, z) in enumerate(planes))
+
+    xml = (f'<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06" '
+           f'UUID="{u1}"><Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYZCT" Type="uint16" '
+           f'SizeX="{data.shape[4]}" SizeY="{data.shape[3]}" SizeZ="{nz}" SizeC="{nc}" SizeT="{nt}" '
+           f'PhysicalSizeX="0.25" PhysicalSizeY="0.25" PhysicalSizeZ="1.5">'
+           f'<Channel ID="Channel:0:0" Name="TagRFP-T" SamplesPerPixel="1"/>'
+           f'<Channel ID="Channel:0:1" Name="mNeptune2.5" SamplesPerPixel="1"/>'
+           f'{tiffdata(range(first_t), u1, "rec.ome.tif")}{tiffdata(range(first_t, nt), u2, "rec_1.ome.tif")}'
+           f'</Pixels></Image></OME>')
+    binary = (f'<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06" '
+              f'UUID="{u2}"><BinaryOnly MetadataFile="rec.ome.tif" UUID="{u1}"/></OME>')
+    for name, ts, desc in (("rec.ome.tif", range(first_t), xml), ("rec_1.ome.tif", range(first_t, nt), binary)):
+        with tifffile.TiffWriter(folder / name) as tw:
+            for i, (t, c, z) in enumerate((t, c, z) for t in ts for c in range(nc) for z in range(nz)):
+                tw.write(data[t, c, z], description=desc if i == 0 else None, metadata=None, contiguous=False)
+    return folder / "rec.ome.tif"
+
+
+@pytest.mark.parametrize("lazy", [False, True], ids=["in-memory", "lazy"])
+def test_a_multi_file_ome_tiff_recording_is_not_called_truncated(tmp_path, monkeypatch, lazy):
+    """Expected: a recording written as a multi-file OME-TIFF (the OME-XML in the first file,
+    later time points in a companion file, as Micro-Manager and bfconvert write long
+    recordings; tifffile reads it whole and right) reads as a recording with every time
+    point. Actual: ImageError "the TIFF is truncated (image data past the end of the file);
+    re-export it" whenever the companion file is bigger than the first. Cause:
+    images._check_tiff_complete compares every page's data offsets with the size of the first
+    file (tif.filehandle.size), also for pages that live in the companion file; it should use
+    each page's own file (page.parent.filehandle.size)."""
+    data = _data((3, 2, 4, 16, 16))
+    path = _multi_file_ome(tmp_path, data, first_t=1)  # the companion holds 2 of the 3 time points
+    assert np.array_equal(tifffile.TiffFile(path).series[0].asarray(), data)  # a valid file
+    if lazy:
+        monkeypatch.setattr(images, "LAZY_BYTES", 0)
+    series = read_series(path)
+    assert len(series) == 3 and series.channel_roles == ["W", "R"]
+    for t in range(3):
+        np.testing.assert_array_equal(series.volume(t).data, data[t])
+
+
+def test_a_stack_refuses_channel_names_that_do_not_fit_its_channels(tmp_path):
+    """Expected: Stack validates channel_names as it validates channel_roles (one per channel,
+    else an ImageError), so a bad stack is refused where it is made. Actual: Stack(two
+    channels, channel_names=['TagRFP-T']) is accepted; write_tiff then dies with tifffile's
+    IndexError 'list index out of range for attribute Name' (ImageJ: a bare IndexError) and
+    write_nwb silently writes one channel name for two channels (read back as 'channel 0',
+    'channel 1'). Cause: Stack.__post_init__ checks the number of roles but never the number
+    of names."""
+    with pytest.raises(FdlcError):
+        Stack(_data((2, 5, 16, 16)), (1.5, 0.25, 0.3), ["W", "R"], channel_names=["TagRFP-T"])
