@@ -225,8 +225,9 @@ def test_several_recordings_share_a_handedness_when_they_clearly_agree(monkeypat
     monkeypatch.setattr(Identifier, "label_panel", fake_label_panel)
     ident = Identifier(CorrespondenceModel({"layers": 1, "dim": 32}), device="cpu")
 
-    def tests(values):
-        return [NeuronTable(np.zeros((1, 3)), source=f"{w} {r}") for w, r in values]
+    def tests(values):  # recordings of their own: FEW_NEURONS neurons or more, none a copy of another
+        return [NeuronTable(np.random.default_rng(k).normal(size=(FEW_NEURONS, 3)) * 10, source=f"{w} {r}")
+                for k, (w, r) in enumerate(values)]
 
     # 11 of 12 lean mirrored on both, but weakly (below the prior): each alone stays "same"
     leaning = ident.label_panel_many(tests([(0.5, 0.1)] * 11 + [(-0.3, -0.1)]), panel=None)

@@ -184,3 +184,16 @@ def test_inconsistent_inputs_are_refused(call):
     twice, a lost decision or a scipy traceback."""
     with pytest.raises(FdlcError):
         call()
+
+
+def test_a_decided_name_moves_its_rivals_share_as_a_certain_answer_does():
+    """A decided name spreads its rivals' share over their other answers, as a model certain of
+    it would (B about 0.65): all of it went to "no named match" (B 0.2, hidden at 0.4)."""
+    from napari_fdlc.match import make_labelling, one_to_one
+
+    probs = np.array([[1.0, 0.0], [0.7, 0.2]])
+    certain = one_to_one(probs)  # the model itself certain that neuron 0 is A
+    decided = one_to_one(probs, {0: 0})  # the user decided it
+    assert decided[1, 1] == pytest.approx(certain[1, 1], abs=0.05), (decided[1], certain[1])
+    labelling = make_labelling(["A", "B"], np.array([[0.6, 0.3], [0.7, 0.2]]), fixed={0: "A"})
+    assert labelling.thresholded(0.4) == ["A", "B"], (labelling.auto_conf, labelling.no_match)
