@@ -267,18 +267,24 @@ def _match_rate(log_p: np.ndarray, matchable: bool = False) -> float:
     ``matchable``, over the likeliest as many as the reference has: the yardstick of a jump,
     where a volume with more neurons than its reference (neurons the first volume lacked) must
     not look like one. (Over every neuron it chooses better between references.)"""
+    return _match_rates(log_p)[1 if matchable else 0]
+
+
+def _match_rates(log_p: np.ndarray) -> tuple[float, float]:
+    """:func:`_match_rate` over every neuron and over the matchable ones, from one pass."""
     matched = np.log1p(-np.exp(np.minimum(log_p[:, -1], -1e-6)))
+    if not len(matched):
+        return 0.0, 0.0
     can = log_p.shape[1] - 1
-    if matchable and len(matched) > can:
-        matched = np.sort(matched)[len(matched) - can:]
-    return float(np.exp(matched.mean())) if len(matched) else 0.0
+    best = np.sort(matched)[len(matched) - can:] if len(matched) > can else matched
+    return float(np.exp(matched.mean())), float(np.exp(best.mean())) if len(best) else 0.0
 
 
 def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: TrackSettings, fit: bool = True) -> dict:
     """Calibrated, colour-fused log p, its one-to-one assignment onto the reference's neurons,
     and (``fit``) the warp that carries this volume onto the reference, fitted on the assignment."""
     lp, placed, saw = out
-    rate, jump_rate = _match_rate(lp), _match_rate(lp, matchable=True)
+    rate, jump_rate = _match_rates(lp)
     # log likelihood ratios on the real columns, fused with the calibrated answer in one renormalisation
     evidence = identifier._colour_evidence(ref.table, volume, model_saw_colour=saw) if s.use_colour else None
     if s.position_sigma_um > 0:

@@ -74,8 +74,10 @@ def read_stack_layers(path) -> list[tuple]:
         unknown = True
         series = read_series(p, voxel_size=[1.0 if v is None else v for v in exc.known])
     # A voxel size set in napari for this image (Auto-label's row) is kept by its session: the
-    # file opened again takes it, whether the file says none or says another
-    saved, set_in_napari = _saved_voxel_size(series.source)
+    # file opened again takes it, whether the file says none or says another. The session is
+    # read once, for this and to be restored below.
+    session_file = _saved_session_file(series.source)
+    saved, set_in_napari = _saved_voxel_size(session_file[1])
     use_saved = saved is not None and (unknown or (set_in_napari and not np.allclose(saved, series.voxel_size_zyx)))
     if use_saved:
         said = "says none" if unknown else f"says {' × '.join(f'{v:g}' for v in series.voxel_size_zyx)}"
@@ -96,21 +98,30 @@ def read_stack_layers(path) -> list[tuple]:
             if neurons is not None:
                 layers.append(neurons)
     # Auto-label names a recording's first time point: its session is restored alike
-    restored = restored_session_layer(series.source, tuple(series.data.shape[-3:]), voxel_zyx=series.voxel_size_zyx)
+    restored = restored_session_layer(series.source, tuple(series.data.shape[-3:]), voxel_zyx=series.voxel_size_zyx,
+                                      session_file=session_file)
     if restored is not None:
         layers.append(restored)
     return layers
 
 
-def _saved_voxel_size(image_key: str) -> tuple[tuple | None, bool]:
-    """The voxel size of the saved review session of ``image_key`` (None without one), and
-    whether it was set in napari (Auto-label's Voxel size row) rather than read from the file."""
+def _saved_session_file(image_key: str) -> tuple:
+    """(path, the session, or the FdlcError that refused it) of ``image_key``'s saved review
+    session; (None, None) without one."""
     path = find_session(image_key)
+    if path is None:
+        return None, None
     try:
-        session = ReviewSession.load(path) if path is not None else None
-    except FdlcError:
-        return None, False  # said when the session itself is restored
-    if session is None or session.voxel_size_zyx is None:
+        return path, ReviewSession.load(path)
+    except FdlcError as exc:
+        return path, exc
+
+
+def _saved_voxel_size(session) -> tuple[tuple | None, bool]:
+    """The voxel size of a saved review session (None without one, or a session that could
+    not be read: said when it is restored), and whether it was set in napari (Auto-label's
+    Voxel size row) rather than read from the file."""
+    if not isinstance(session, ReviewSession) or session.voxel_size_zyx is None:
         return None, False
     return tuple(float(v) for v in session.voxel_size_zyx), bool(session.settings.get("voxel_size_set"))
 
@@ -137,17 +148,17 @@ def _nwb_neurons(path: str, stack):
     return data, kwargs, kind
 
 
-def restored_session_layer(image_key: str, shape_zyx=None, default_name: str | None = None, voxel_zyx=None):
+def restored_session_layer(image_key: str, shape_zyx=None, default_name: str | None = None, voxel_zyx=None,
+                           session_file: tuple | None = None):
     """The neuron-ID layer of a saved review session of ``image_key`` (None when there is none
     or it does not fit the image: its shape or voxel size), under the name it was saved with
-    (else ``default_name``)."""
-    path = find_session(image_key)
+    (else ``default_name``). ``session_file``: :func:`_saved_session_file`'s answer, when the
+    caller has read it already."""
+    path, session = session_file or _saved_session_file(image_key)
     if path is None:
         return None
-    try:
-        session = ReviewSession.load(path)
-    except FdlcError as exc:
-        _warn_in_napari(f"saved session not restored: {exc}")
+    if isinstance(session, FdlcError):
+        _warn_in_napari(f"saved session not restored: {session}")
         return None
     saved_shape = session.settings.get("image_shape")
     if shape_zyx is not None and saved_shape is not None and list(saved_shape) != list(shape_zyx):
