@@ -2,7 +2,7 @@
 ablation), in one run, on the same sequences.
 
     python benchmarks/tracking.py [--weights PATH] [--sequences 5] [--frames 100] [--motion 1 2]
-                                  [--no-cpd] [--threads 2]
+                                  [--no-cpd] [--threads 2] [--jump turn|shift]
 
 Each sequence is one worm sampled from the shipped atlas (``reference.generate_worm``) moving
 smoothly (``track.simulate_sequence``: bend, roll, XY rotation and drift, scale interpolated
@@ -15,6 +15,9 @@ colours are nearly noise-free, so colour would make it trivial). CPD tracks as a
 does (``track(method="cpd")``: the first volume searched in all 16 orientations with
 ``baselines.cpd_search``, every later volume one registration of the reference as deformed onto
 the volume before, ``baselines.cpd_follow``), on the same volumes (``--no-cpd`` leaves it out).
+``--jump`` adds one sudden move halfway through every sequence, kept to its end (the worm
+slipping under the objective, a stage step): ``turn`` = 45° about the optical axis (about the
+volume's centroid), ``shift`` = 10 µm along x.
 """
 
 from __future__ import annotations
@@ -30,6 +33,23 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 
+def _turned(volume, degrees: float = 45.0):
+    from napari_fdlc.table import NeuronTable
+
+    a, centre = np.radians(degrees), volume.xyz.mean(0)
+    about_z = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    return NeuronTable((volume.xyz - centre) @ about_z.T + centre, dict(volume.colours))
+
+
+def _shifted(volume, um: float = 10.0):
+    from napari_fdlc.table import NeuronTable
+
+    return NeuronTable(volume.xyz + [um, 0, 0], dict(volume.colours))
+
+
+JUMPS = {"turn": _turned, "shift": _shifted}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--weights", default=None, help="model path without suffix (default: the shipped model)")
@@ -40,6 +60,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-cpd", action="store_true", help="leave CPD out (about 30 ms per volume)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=100)
+    ap.add_argument("--jump", choices=sorted(JUMPS), help="a sudden move halfway through each sequence (see above)")
     args = ap.parse_args(argv)
 
     import torch
@@ -64,7 +85,8 @@ def main(argv=None) -> int:
     }
     if not args.no_cpd:
         methods["CPD (pycpd; 16 orientations on the first volume, then one registration from the volume before)"] = ("cpd", base)
-    print(f"# tracking: {args.sequences} sequences × {args.frames} volumes per motion level, positions only; "
+    jump = f"; a {args.jump} halfway" if args.jump else ""
+    print(f"# tracking: {args.sequences} sequences × {args.frames} volumes per motion level{jump}, positions only; "
           f"weights {weights or 'shipped'}, tracking weights {args.tracking_weights or 'shipped'}; {args.threads} torch thread(s)")
     print()
     print("| motion | method | accuracy | untracked right | volumes/s |")
@@ -72,6 +94,9 @@ def main(argv=None) -> int:
     for motion in args.motion:
         params = SequenceParams(frames=args.frames).scaled(motion)
         sequences = [simulate_sequence(generate_worm(seed=args.seed + k), args.seed + k, params) for k in range(args.sequences)]
+        if args.jump:
+            sequences = [([v if t < args.frames // 2 else JUMPS[args.jump](v) for t, v in enumerate(volumes)], origins)
+                         for volumes, origins in sequences]
         for label, (method, settings) in methods.items():
             hit = total = 0
             free = []  # per recording (NaN: nothing to leave untracked)

@@ -12,6 +12,8 @@ import pytest
 
 from napari_fdlc.cli import main
 from napari_fdlc.table import NeuronTable, write_table
+from napari_fdlc.errors import FdlcError
+from napari_fdlc.reference import generate_worm
 
 
 def run(*args):
@@ -288,7 +290,7 @@ def test_evaluate_writes_every_protocol(tmp_path, corpus_path):
     assert rows == {("pairs", m, i) for m in ("fdlc", "floor") for i in ("position", "colour")} | {
         ("panel", "fdlc", i) for i in ("position", "colour", "colour, the lab's worms in one call", "colour, the lab's worms in one call, colours adapted",
                                     "colour, chirality given", "colour, lab handedness")}
-    assert (tmp_path / "docs" / "images" / "calibration.png").exists()
+    assert (tmp_path / "docs" / "images" / "accuracy_calibration.png").exists()
 
 
 def test_label_names_a_lab_of_mirrored_recordings_in_one_call(tmp_path, corpus_path, capsys):
@@ -523,3 +525,43 @@ def test_label_cpd_needs_no_torch(small_tables):
         ["label", "test.csv", "--template", "template.csv", "--method", "cpd", "--out", "cpd.csv"], small_tables)
     assert rc == 0, err
     assert not torch_loaded, "fdlc label --method cpd (no model) imported torch"
+
+
+def test_handedness_of_one_worm_says_which_chirality_to_use(tmp_path, capsys):
+    """docs/cli.md, `fdlc handedness LABELLED.csv [...]`: "each labelled worm's handedness
+    relative to the built-in atlas (or T.csv), and the `--chirality` the majority calls for".
+    Given one labelled worm (the commonest use: one worm labelled in napari), the command prints
+    only `worm.csv: mirrored` and no `--chirality` line at all: cli.py:_run_handedness prints the
+    majority line only when more than one table is given."""
+    worm = generate_worm(seed=1)
+    worm.xyz[:, 2] *= -1  # a z-mirrored acquisition
+    path = tmp_path / "worm.csv"
+    write_table(worm, path)
+    assert main(["handedness", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "mirrored" in out.splitlines()[0]
+    assert "--chirality mirrored" in out, f"no --chirality advice for one worm: {out!r}"
+
+
+def test_adapt_colours_with_three_coloured_tests_is_not_refused_as_fewer_than_three(tmp_path, capsys, monkeypatch):
+    """docs/cli.md: "Three tests or more with R, G, B and no template: the panel's colours are
+    measured on them", and a copy of another test is only left out of that measurement ("nor are
+    the adapted colours measured on it"). Three tests with R, G, B, one a copy of another, with
+    `--adapt-colours` asked for: the colours are not adapted at all, and the one line says
+    "--adapt-colours is for the built-in panel with colour (R, G, B) in at least 3 tests: ignored
+    here" although 3 tests with R, G, B were given (identify.can_adapt_colours counts only
+    distinct recordings of >= 10 neurons; the message and the doc do not say so)."""
+    a, b = generate_worm(seed=1), generate_worm(seed=2)
+    paths = [tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "a_again.csv"]
+    for table, path in zip((a, b, a), paths):
+        write_table(table, path)
+
+    def stop(*_args, **_kwargs):  # the answer is not needed: only what is said before naming
+        raise FdlcError("stopped before naming")
+
+    monkeypatch.setattr("napari_fdlc.reference.load_panel", stop)
+    main(["label", *map(str, paths), "--adapt-colours", "--out", str(tmp_path / "ids") + "/"])
+    err = capsys.readouterr().err
+    ignored = [line for line in err.splitlines() if "--adapt-colours" in line and "ignored" in line]
+    assert not ignored or "cop" in ignored[0], (
+        "3 tests with R, G, B were given, yet: " + ignored[0])

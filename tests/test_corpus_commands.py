@@ -17,6 +17,12 @@ from napari_fdlc.corpus import Worm, load_corpus
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.reference import build_atlas, generate_worm
 from napari_fdlc.table import NeuronTable, write_table
+import os
+import shlex
+import subprocess
+import sys
+from dataclasses import replace
+from napari_fdlc.reference import atlas_worm, load_atlas
 
 FAST = ("--pairs-per-lab", "1", "--panel-worms-per-lab", "0", "--synthetic-pairs", "0", "--no-cpd")
 
@@ -212,3 +218,141 @@ def test_evaluate_on_a_corpus_of_one_lab_says_why_it_cannot(tmp_path, write_corp
     code = run("evaluate", "--corpus", corpus, *FAST, "--weights", untrained_weights, "--out", out)
     err = capsys.readouterr().err
     assert code == 0 or ("MINE" in err or "other lab" in err), err
+
+
+FAST_h = ("--pairs-per-lab", "1", "--panel-worms-per-lab", "0", "--synthetic-pairs", "0", "--no-cpd")
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory, write_corpus) -> Path:
+    worms = {lab: [generate_worm(seed=700 + 3 * k + i) for i in range(3)] for k, lab in enumerate(("NP", "EY"))}
+    return write_corpus(tmp_path_factory.mktemp("corpus"), worms)
+
+
+def test_min_frequency_keeps_a_name_seen_in_exactly_that_fraction_of_worms():
+    """Expected (cli.md, `fdlc atlas`): "names seen in at least F of the worms" are kept, so with
+    `--min-frequency 0.28` a name seen in 7 of 25 worms (exactly 0.28) is in the atlas.
+    Actual: build_atlas compares the count with `min_frequency * used` in floating point;
+    0.28 * 25 = 7.000000000000001 > 7, so the name is dropped (likewise 0.56 of 25, 0.07 of 100,
+    0.55 of 100 ...)."""
+    atlas = load_atlas()
+    rng = np.random.default_rng(0)
+    anchor = list(atlas.names).index("AVAL")
+    worms = []
+    for k in range(25):
+        worm = atlas_worm(atlas, rng, spread=0.3)
+        if k < 7:  # one more neuron, named XTRA, in 7 of the 25 worms
+            xyz = np.vstack([worm.xyz, worm.xyz[anchor] + [0.0, 0.0, 4.0]])
+            colours = {c: np.append(v, 0.0) for c, v in worm.colours.items()}
+            worm = NeuronTable(xyz, colours, np.append(worm.labels, "XTRA").astype(object))
+        worms.append(Worm("A" if k % 2 else "B", f"w{k}", worm))
+    built = build_atlas(worms, min_frequency=0.28)
+    assert built.worms == 25
+    assert "XTRA" in set(built.names), "a name in 7 of 25 worms (0.28) was dropped at --min-frequency 0.28"
+
+
+def test_an_atlas_saved_as_utf8_loads_whatever_the_locale(tmp_path):
+    """Expected: Atlas.save writes UTF-8 (encoding="utf-8"), so Atlas.load reads its header the
+    same way on any machine; a lab named "Zürich" comes back as written.
+    Actual: Atlas.load reads the header with `path.read_text()`, in the locale's encoding: under a
+    non-UTF-8 locale (LC_ALL=C here; cp1252 on Windows gives 'ZÃ¼rich' silently) the atlas is
+    refused as "not a valid atlas file ('ascii' codec can't decode byte 0xc3 ...)"."""
+    path = tmp_path / "atlas.csv"
+    replace(load_atlas(), labs=("Zürich",)).save(path)
+    env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0"}
+    code = f"from napari_fdlc.reference import Atlas; print(ascii(Atlas.load({str(path)!r}).labs))"
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr.strip().splitlines()[-1]
+    assert done.stdout.strip() == ascii(("Zürich",))
+
+
+def test_a_corpus_folder_not_found_is_named_in_the_error(tmp_path, capsys):
+    """Expected: `fdlc atlas --corpus PATH` with no worms.csv at PATH says which folder it looked
+    in (a typo in PATH is then plain).
+    Actual: "NeuroPAL corpus not found: pass --corpus PATH (the folder with worms.csv) or set
+    FDLC_CORPUS" — the folder given is not named, and the advice is to pass the option that
+    was passed (corpus.load_corpus ignores which path it was given)."""
+    missing = tmp_path / "my_corpus_typo"
+    missing.mkdir()
+    assert run("atlas", "--corpus", missing, "--out", tmp_path / "atlas.csv") == 2
+    err = capsys.readouterr().err
+    assert "my_corpus_typo" in err, err
+
+
+def test_evaluate_labs_are_matched_as_the_corpus_is_read(tmp_path, corpus, untrained_weights, capsys):
+    """Expected: `--labs " NP"` names lab NP in `fdlc evaluate` as it does in `fdlc atlas`
+    (load_corpus strips the labs asked for, as it strips worms.csv's; tested for atlas).
+    Actual: evaluate_corpus compares the labs unstripped with the corpus's: exit 2,
+    "no worms of lab(s)  NP in the corpus"."""
+    out = tmp_path / "acc.md"
+    code = run("evaluate", "--corpus", corpus, "--labs", " NP", *FAST_h, "--weights", untrained_weights, "--out", out)
+    assert code == 0, capsys.readouterr().err
+
+
+def test_evaluate_made_by_line_reproduces_a_corpus_path_with_a_space(tmp_path, write_corpus, untrained_weights,
+                                                                      monkeypatch):
+    """Expected: the report's "Made by `...`" line is the command that reproduces the run, so a
+    corpus folder with a space ("my corpus") is quoted and reads back as one argument.
+    Actual: the options are joined unquoted: `--corpus /…/my corpus --labs NP …` reruns on the
+    folder "/…/my" with a stray argument "corpus"."""
+    import napari_fdlc._cli_evaluate as cli_evaluate
+
+    monkeypatch.setattr(cli_evaluate, "_plot_reliability", lambda *a, **k: False)
+    folder = write_corpus(tmp_path / "my corpus", {lab: [generate_worm(seed=800 + 3 * k + i) for i in range(2)]
+                                                   for k, lab in enumerate(("NP", "EY"))})
+    out = tmp_path / "acc.md"
+    assert run("evaluate", "--corpus", folder, "--labs", "NP", *FAST_h, "--weights", untrained_weights, "--out", out) == 0
+    made_by = next(line for line in out.read_text().splitlines() if line.startswith("Made by"))
+    argv = shlex.split(made_by.split("`")[1])
+    assert argv[argv.index("--corpus") + 1] == str(folder), argv
+
+
+def test_evaluate_where_the_other_labs_are_too_few_for_an_atlas_says_so(tmp_path, write_corpus, untrained_weights,
+                                                                        capsys):
+    """Expected: scoring NP beside a lab of one worm (the atlas beside a template and the panel
+    are rebuilt without NP, from that one worm) is refused in a line that says so: the lab
+    scored, or that the atlas is built from the other labs (as a corpus of one lab is told).
+    Actual: "no atlas from these 1 worm(s): ... an atlas needs 2 such worms" for a corpus of 4
+    worms, naming neither the lab nor that the other labs are meant."""
+    folder = write_corpus(tmp_path / "corpus", {"NP": [generate_worm(seed=s) for s in (1, 2, 3)],
+                                                "EY": [generate_worm(seed=4)]})
+    code = run("evaluate", "--corpus", folder, "--labs", "NP", *FAST_h, "--weights", untrained_weights,
+               "--out", tmp_path / "acc.md")
+    err = capsys.readouterr().err
+    assert code == 0 or "NP" in err or "other lab" in err, err
+
+
+def test_evaluate_through_a_link_puts_the_plot_beside_the_report(tmp_path, corpus, untrained_weights, monkeypatch):
+    """Expected: `--out` a link writes the report into the file it names (check_output: "a link
+    stands for the file it names"), and the reliability plot goes "into images/ beside the
+    report" (cli.md), where the report's `![reliability](images/calibration.png)` finds it.
+    Actual: the plot goes beside the link (Path(args.out).parent), the report to the link's
+    target in another folder: the report's image link is broken there."""
+    import napari_fdlc._cli_evaluate as cli_evaluate
+
+    plotted = []
+    monkeypatch.setattr(cli_evaluate, "_plot_reliability", lambda calib, path, rel: plotted.append(Path(path)) or True)
+    real = tmp_path / "reports" / "acc.md"
+    real.parent.mkdir()
+    real.write_text("old\n")
+    link = tmp_path / "links" / "acc.md"
+    link.parent.mkdir()
+    link.symlink_to(real)
+    assert run("evaluate", "--corpus", corpus, "--labs", "NP", *FAST_h, "--weights", untrained_weights, "--out", link) == 0
+    assert "images/acc_calibration.png" in real.read_text()
+    assert plotted == [real.parent / "images" / "acc_calibration.png"], plotted
+
+
+def test_a_second_report_in_one_folder_does_not_replace_the_first_reports_plot(tmp_path, corpus, untrained_weights):
+    """Expected: `fdlc evaluate --out docs/b.md` writes b.md and its own plot; docs/a.md (an
+    earlier report, e.g. docs/accuracy.md) keeps the plot it links to. Only an output named on
+    the command line is replaced.
+    Actual: every report's plot is images/calibration.png beside it, so the second run silently
+    replaces the first report's plot with its own: a.md now shows another run's reliability."""
+    first, second = tmp_path / "a.md", tmp_path / "b.md"
+    assert run("evaluate", "--corpus", corpus, "--labs", "NP", *FAST_h, "--weights", untrained_weights, "--out", first) == 0
+    plot = tmp_path / "images" / "a_calibration.png"
+    assert plot.exists() and "images/a_calibration.png" in first.read_text()
+    before = plot.read_bytes()
+    assert run("evaluate", "--corpus", corpus, "--labs", "EY", *FAST_h, "--weights", untrained_weights, "--out", second) == 0
+    assert plot.read_bytes() == before, "the first report's plot was replaced by the second run's"

@@ -12,6 +12,7 @@ from napari_fdlc.label import labelling_frame
 from napari_fdlc.match import Labelling
 from napari_fdlc.sample import sample_paths
 from napari_fdlc.table import NeuronTable, write_table
+from napari_fdlc.table import write_neuropal_id
 
 
 def run(*args):
@@ -234,3 +235,81 @@ def test_out_may_not_replace_the_weights(tmp_path, capsys, worm, untrained_weigh
 
     assert run("label", test, "--out", f"{shipped_weights()}.json") == 2
     assert "would replace an input" in _stderr_lines(capsys)[0]
+
+
+def _err(capsys) -> list[str]:
+    return capsys.readouterr().err.strip().splitlines()
+
+
+@pytest.fixture
+def small(tmp_path, worm, other_worm):
+    """A 30-neuron test (no label) and a 40-neuron labelled template, as CSV text."""
+    test = worm.subset(range(30)).to_dataframe().drop(columns=["label"])
+    template = tmp_path / "template.csv"
+    write_table(other_worm.subset(range(40)), template)
+    return test, template
+
+
+def test_a_table_with_a_blank_first_line_is_read(tmp_path, capsys, small):
+    """A CSV whose header follows one empty line (pandas, like most CSV readers, skips it)
+    should be read as the table it is. Instead fdlc label refuses it with a false message:
+    "line 2 has 6 fields, the header 0" (table._read_csv takes the blank line as the header,
+    while pandas takes line 2)."""
+    frame, template = small
+    test = tmp_path / "test.csv"
+    test.write_text("\n" + frame.to_csv(index=False))
+    out = tmp_path / "out.csv"
+    code = run("label", test, "--template", template, "--method", "cpd", "--out", out)
+    assert code == 0, _err(capsys)
+    assert len(pd.read_csv(out)) == len(frame)
+
+
+def test_a_neuropal_id_export_with_a_quoted_header_is_accepted(tmp_path, capsys, small, other_worm):
+    """neuron_table.md: "A NeuroPAL_ID CSV export (recognised by its header) is accepted
+    wherever a neuron table is." The same export with its header fields quoted (as a tool that
+    quotes every field saves it; the CSV is the same) is not recognised (table._is_neuropal_id
+    looks for the raw text 'User ID,'), and is refused as a template with a misleading
+    "line 3 has 5 fields, the header 2"."""
+    frame, _ = small
+    test = tmp_path / "test.csv"
+    frame.to_csv(test, index=False)
+    export = tmp_path / "export.csv"
+    write_neuropal_id(other_worm.subset(range(40)), export)
+    lines = export.read_text().split("\n")
+    header = next(i for i, line in enumerate(lines) if line.startswith("User ID,"))
+    lines[header] = ",".join(f'"{h}"' for h in lines[header].split(","))
+    export.write_text("\n".join(lines))
+    out = tmp_path / "out.csv"
+    code = run("label", test, "--template", export, "--method", "cpd", "--out", out)
+    assert code == 0, _err(capsys)
+    assert (pd.read_csv(out, keep_default_na=False)["auto_id"] != "").any()
+
+
+def test_blank_header_cells_do_not_come_back_under_pandas_names(tmp_path, capsys, small):
+    """Excel leaves ', ,' header cells (a space, no value below) after a table: columns with
+    neither a name nor a value, which the reader means to drop ("kept, it would be written back
+    under pandas' name for it"). Two of them are instead read as '' and '.1' (pandas mangles the
+    second ' ' to ' .1', then the name is stripped), and fdlc label writes a column named '.1'
+    (and one named '') that the input never had."""
+    frame, template = small
+    test = tmp_path / "test.csv"
+    body = frame.to_csv(index=False).splitlines()
+    test.write_text("\n".join([body[0] + ", , "] + [line + ",," for line in body[1:]]) + "\n")
+    out = tmp_path / "out.csv"
+    assert run("label", test, "--template", template, "--method", "cpd", "--out", out) == 0, _err(capsys)
+    header = out.read_text().splitlines()[0].split(",")
+    assert ".1" not in header and "" not in header, header
+
+
+def test_one_time_point_written_as_1_and_1_0_is_one_volume(tmp_path, capsys, small):
+    """A test with a 't' column of one time point, written '1' on some rows and '1.0' on others
+    (as a spreadsheet or a script mixing ints and floats saves it), is one volume. It is refused
+    as "a recording of 2 time points": table.read_volume counts distinct t *texts*, not values."""
+    frame, template = small
+    frame = frame.copy()
+    frame["t"] = ["1" if i % 2 else "1.0" for i in range(len(frame))]
+    test = tmp_path / "test.csv"
+    frame.to_csv(test, index=False)
+    out = tmp_path / "out.csv"
+    code = run("label", test, "--template", template, "--method", "cpd", "--out", out)
+    assert code == 0, _err(capsys)

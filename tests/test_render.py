@@ -10,6 +10,10 @@ from napari_fdlc.errors import FdlcError
 from napari_fdlc.io.images import ImageError
 from napari_fdlc.render import align_worm, colour_intensities, random_worm, render_stack, spread_apart
 from napari_fdlc.table import NeuronTable
+import subprocess
+import sys
+import textwrap
+from napari_fdlc.render import render_recording
 
 # Small, coarse stacks: a few thousand voxels each.
 SMALL = dict(margin_um=(2.0, 3.0, 3.0), voxel_size_zyx=(1.0, 0.5, 0.5), gut=False)
@@ -244,3 +248,100 @@ def test_random_worm_that_cannot_be_made_is_an_fdlc_error():
     for args in ((500, (10, 10, 10)), (0,)):
         with pytest.raises(FdlcError):
             random_worm(*args)
+
+
+SMALL_h = dict(margin_um=(2.0, 3.0, 3.0), voxel_size_zyx=(1.0, 0.5, 0.5), gut=False)
+
+
+ANTERIOR = ("I1", "I2", "I3", "MC", "M1", "M2", "M3", "M4", "M5", "MI", "NSM", "IL1", "IL2", "OLQ", "OLL",
+            "URA", "URB", "URY", "CEP")
+
+
+@pytest.mark.parametrize("given", ["R", "GB"])
+def test_truth_carries_the_colours_that_were_rendered_for_a_partial_colour_table(given):
+    """A table with some of R, G, B: the missing channels are drawn (NeuroPAL-like on/off) and
+    the truth should carry every rendered colour, the given ones as they were in the input (the
+    docstring: "the input colours"). render_stack only checks ``"R" not in table.colours``: with R
+    alone the truth has no G or B at all (though they were rendered); with G and B but no R the
+    input G and B are thrown away and replaced by rendered intensities."""
+    worm = random_worm(10, size_um=(20, 8, 6), seed=1)
+    table = NeuronTable(worm.xyz, {c: worm.colours[c] for c in given})
+    _, truth = render_stack(table, seed=0, **SMALL_h)
+    assert {"R", "G", "B"} <= set(truth.colours), sorted(truth.colours)
+    for c in given:
+        np.testing.assert_allclose(truth.colours[c], worm.colours[c], err_msg=f"input {c} not kept")
+
+
+def _recording(frames=3, n=8):
+    worm = random_worm(n, size_um=(16, 8, 6), seed=1)
+    return [worm] * frames, [np.arange(n)] * frames
+
+
+def test_recording_with_fewer_identity_arrays_than_volumes_is_refused():
+    """render_recording(volumes, identities): one identity array per volume. With 3 volumes and
+    2 identity arrays it silently renders a 2-time-point recording (``zip`` truncates), dropping
+    a volume, instead of an ImageError."""
+    volumes, identities = _recording(3)
+    with pytest.raises(ImageError):
+        series, truths = render_recording(volumes, identities[:2], **SMALL_h)
+        pytest.fail(f"rendered {len(series)} time points for 3 volumes")
+
+
+@pytest.mark.parametrize("settings", [{"voxel_size_zyx": (1.0, 0.5)}, {"margin_um": (2.0, 3.0)}],
+                         ids=["voxel size", "margin"])
+def test_recording_settings_that_cannot_be_rendered_are_one_image_error(settings):
+    """render_stack refuses a 2-number voxel size or margin as an ImageError (tested in
+    test_render.py); render_recording computes its shape from them before render_stack checks
+    them and fails with numpy's bare ValueError 'operands could not be broadcast together'."""
+    volumes, identities = _recording(2)
+    with pytest.raises(ImageError):
+        render_recording(volumes, identities, **{**SMALL_h, **settings})
+
+
+def test_recording_with_an_empty_volume_is_one_image_error():
+    """A recording with an empty volume (every neuron dropped at one time point): render_stack
+    says "the neuron table is empty" (ImageError), but render_recording computes np.ptp over the
+    empty volume first: ValueError 'zero-size array to reduction operation maximum'."""
+    volumes, identities = _recording(1)
+    volumes = volumes + [NeuronTable(np.zeros((0, 3)))]
+    identities = identities + [np.zeros(0, dtype=int)]
+    with pytest.raises(ImageError):
+        render_recording(volumes, identities, **SMALL_h)
+
+
+def _run_limited(code: str) -> subprocess.CompletedProcess:
+    """Run ``code`` in a fresh interpreter with at most 3 GB of address space (a renderer that
+    tries to allocate the stack fails there instead of swapping the machine)."""
+    prelude = "import resource; resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))\n"
+    return subprocess.run([sys.executable, "-c", prelude + textwrap.dedent(code)], capture_output=True, text=True,
+                          timeout=120)
+
+
+def test_a_huge_shape_is_refused_with_the_renderers_own_message():
+    """shape_zyx=(2**21, 2**21, 2**22) is 2**64 voxels, far above MAX_VOXELS (5e8). The check
+    ``shape.prod() > MAX_VOXELS`` wraps around in int64 (the product is 0) and passes; the stack
+    allocation then fails with numpy's ValueError 'array is too big' (not an ImageError)."""
+    proc = _run_limited("""
+        from napari_fdlc.render import random_worm, render_stack
+        from napari_fdlc.io.images import ImageError
+        try:
+            render_stack(random_worm(6, size_um=(16, 8, 6), seed=1), shape_zyx=(2**21, 2**21, 2**22), gut=False)
+        except ImageError as exc:
+            print("IMAGE_ERROR", exc)
+        except Exception as exc:
+            print("OTHER", type(exc).__name__, exc)
+        else:
+            print("RENDERED")
+    """)
+    assert "IMAGE_ERROR" in proc.stdout, proc.stdout + proc.stderr[-2000:]
+
+
+def test_positions_far_too_large_are_refused_not_rendered_into_a_tiny_empty_stack():
+    """Positions ~1e21 µm (a table in the wrong unit): the extent in voxels overflows int64 in
+    ``np.ceil(extent / vox).astype(int)`` (to -2**63), ``np.maximum(..., 3)`` makes it 3, and the
+    "are the positions in µm?" check never fires: a 4 x 3 x 3 x 3 stack of pure background with
+    an empty truth is returned silently."""
+    worm = random_worm(6, size_um=(16, 8, 6), seed=1)
+    with pytest.raises(ImageError):
+        stack, truth = render_stack(NeuronTable(worm.xyz * 1e20, worm.colours), **SMALL_h)
+        pytest.fail(f"rendered a {stack.data.shape} stack with {len(truth)} of 6 neurons")

@@ -20,6 +20,8 @@ from napari_fdlc.errors import FdlcError
 from napari_fdlc.match import make_labelling
 from napari_fdlc.review import Decision, ReviewSession, carry_decisions, find_session, session_file_for, set_aside
 from napari_fdlc.table import NeuronTable, read_table
+from napari_fdlc.review import SESSION_SUFFIX
+from napari_fdlc.table import UNSURE_CONF
 
 NAMES = ["AVAL", "AVAR", "RMDL", "RMDR", "SMDVL"]
 VOXEL = (1.0, 0.25, 0.25)
@@ -464,3 +466,212 @@ def test_a_session_with_a_zero_voxel_size_is_refused_or_reloads(tmp_path):
     s.accept(0)
     assert path.is_file()
     assert ReviewSession.load(path).status[0] == "accepted"
+
+
+NAMES_h = ["AVAL", "AVAR", "RMDL", "RMDR", "SMDVL"]
+
+
+VOXEL_h = (1.0, 0.25, 0.25)
+
+
+PROBS_h = np.array(
+    [
+        [0.90, 0.05, 0.02, 0.01, 0.01],
+        [0.10, 0.70, 0.10, 0.05, 0.00],
+        [0.05, 0.30, 0.60, 0.05, 0.00],
+        [0.00, 0.00, 0.10, 0.50, 0.35],
+    ]
+)
+
+
+def _write(tmp_path, d: dict, name: str = "worm.tif" + SESSION_SUFFIX, encoding: str = "utf-8"):
+    path = tmp_path / name
+    path.write_text(json.dumps(d), encoding=encoding)
+    return path
+
+
+def test_a_hand_edited_unsure_name_with_a_question_mark_is_not_lost(tmp_path):
+    """A user who edits the session file and writes an unsure name the way every table and the
+    Name box write it, ``RMDL?`` (docs/gui.md §4: "`AVAL?` means unsure"), must keep that decision.
+    The file's ``user_id`` is taken literally: the name 'RMDL?' is shown as 'RMDL??', does not
+    hold RMDL, so RMDL can be decided for a second neuron; the export then names two neurons
+    RMDL and, read back, both decisions are gone (read_table drops repeated names)."""
+    d = _session().to_dict()
+    d["neurons"]["user_id"][1], d["neurons"]["status"][1], d["neurons"]["user_conf"][1] = "RMDL?", "unsure", 0.5
+    s = ReviewSession.load(_write(tmp_path, d))
+    try:
+        s.accept(2)  # neuron 2's automatic name is RMDL: refused while neuron 1 holds it
+    except FdlcError:
+        pass
+    labels = list(read_table(s.export(tmp_path / "ids.csv")).label_strings())
+    assert "RMDL?" in labels, f"the unsure RMDL decision is lost: {labels}"
+
+
+def _npid_shown(path) -> list[str]:
+    """What NeuroPAL_ID shows per neuron: the User ID ('?' when unsure), else the Auto ID."""
+    df = pd.read_csv(path, skiprows=6, keep_default_na=False, dtype=str)
+    out = []
+    for user, conf, auto in zip(df["User ID"], df["User Confidence"], df["Auto ID"]):
+        if user:
+            out.append(user + ("?" if float(conf) == UNSURE_CONF else ""))
+        else:
+            out.append(auto)
+    return out
+
+
+@pytest.mark.parametrize(
+    "row, fields",
+    [
+        (2, {"user_id": "AVAR", "status": "auto", "user_conf": None}),  # a name typed, status left 'auto'
+        (1, {"user_id": "AVAR", "status": "unsure", "user_conf": 1.0}),  # status set to unsure, confidence left 1
+        (1, {"user_id": "", "status": "accepted", "user_conf": 1.0}),  # status set, no name
+    ],
+    ids=["name-without-status", "unsure-with-confidence-1", "status-without-name"],
+)
+def test_a_hand_edited_decision_is_shown_and_exported_alike(tmp_path, row, fields):
+    """A session file whose decision fields disagree (``user_id``, ``status``, ``user_conf``
+    edited by hand) is loaded without reconciling them, so the session shows one thing and the
+    NeuroPAL_ID export says another: e.g. neuron 2 shows its automatic RMDL while the export
+    gives it the User ID AVAR (and AVAR cannot be given to anyone: "already the name of neuron
+    2"), or 'AVAR?' shown but exported as a sure AVAR. Expected: the file is refused as damaged,
+    or loaded consistently, so that what the widget shows is what both exports say."""
+    d = _session().to_dict()
+    for key, value in fields.items():
+        d["neurons"][key][row] = value
+    try:
+        s = ReviewSession.load(_write(tmp_path, d))
+    except FdlcError:
+        return  # refused as damaged: fine
+    shown = s.display_names()
+    fdlc = list(read_table(s.export(tmp_path / "ids.csv")).label_strings())
+    npid = _npid_shown(s.export(tmp_path / "npid.csv", format="neuropal_id"))
+    assert fdlc == shown and npid == shown, f"shown {shown}, fdlc CSV {fdlc}, NeuroPAL_ID {npid}"
+
+
+def test_a_session_file_with_a_vocabulary_of_the_wrong_kind_never_raises_out_of_an_edit(tmp_path):
+    """A session file's ``vocabulary`` holding numbers (hand-edited, or written by another tool)
+    is accepted by load, and every later typed name then raises AttributeError ('int' object
+    has no attribute 'lower', from _spelled_as_known): a traceback in napari on each Enter.
+    Expected: refused as damaged (one FdlcError line) or ignored."""
+    s = _session()
+    s.accept(0)
+    d = s.to_dict()
+    d["vocabulary"] = [7, 8]
+    try:
+        r = ReviewSession.load(_write(tmp_path, d))
+    except FdlcError:
+        return
+    r.assign(1, "RMDR")
+    assert r.user_id[:2] == ["AVAL", "RMDR"]
+
+
+def test_a_threshold_of_the_wrong_kind_does_not_keep_the_decisions_out_of_reach(tmp_path):
+    """docs/gui.md §5: "A setting of the wrong kind in a session file is ignored, not a reason to
+    leave the image closed." A ``threshold`` of null (what a JSON writer makes of NaN) or out of
+    0-1 makes the whole file 'damaged': it is set aside and the decisions are not restored.
+    Expected: the threshold falls back to the default and the decisions load."""
+    s = _session()
+    s.accept(0)
+    for bad in (None, 5):
+        d = s.to_dict()
+        d["threshold"] = bad
+        r = ReviewSession.load(_write(tmp_path, d))
+        assert r.status[0] == "accepted" and 0.0 <= r.threshold <= 1.0
+
+
+def test_a_session_file_with_a_missing_position_is_refused_or_exports_a_readable_table(tmp_path):
+    """A session file with a position null (damaged, or hand-edited) loads as a neuron at NaN;
+    its CSV export then has an empty x_um, which read_table (every fdlc command, this plugin)
+    refuses: "line 2, column 'x_um': an empty cell is not a finite number". docs/gui.md §6
+    promises the export reads back. Expected: the file refused as damaged (FdlcError) on load."""
+    s = _session()
+    s.accept(0)
+    d = s.to_dict()
+    d["neurons"]["x_um"][1] = None
+    try:
+        r = ReviewSession.load(_write(tmp_path, d))
+    except FdlcError:
+        return
+    read_table(r.export(tmp_path / "ids.csv"))
+
+
+def test_a_session_file_saved_with_a_byte_order_mark_loads(tmp_path):
+    """A session file edited and saved in an editor that writes UTF-8 with a byte order mark
+    (Windows Notepad) is refused as "unreadable session file (Unexpected UTF-8 BOM)"; napari
+    then sets it aside and does not restore the decisions. Neuron tables accept the BOM
+    (read_table reads utf-8-sig). Expected: the session loads."""
+    s = _session()
+    s.accept(0)
+    path = _write(tmp_path, s.to_dict(), encoding="utf-8-sig")
+    assert ReviewSession.load(path).status[0] == "accepted"
+
+
+def test_a_session_made_as_the_module_docstring_shows_is_found_again_after_a_failed_save(tmp_path, monkeypatch):
+    """review.py's docstring makes a session as ``ReviewSession(table, labelling,
+    path=session_file_for("worm.tif"))`` (no ``image=``). When a save beside the image fails
+    (disk full, a share remounted read-only), autosave goes on in the user's data folder under a
+    name keyed by the *session file's* path, which find_session(image) never looks for: it
+    returns the stale file beside the image, and reopening the image restores the earlier
+    decisions only (later ones are lost to the user). Expected: find_session finds the latest."""
+    image = tmp_path / "worm.tif"
+    image.write_bytes(b"II*\x00")
+    path = session_file_for(image)
+    s = ReviewSession(_table(), make_labelling(NAMES_h, PROBS_h), path=path)
+    s.accept(0)
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if os.fspath(dst) == os.fspath(path):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    s.accept(1)
+    s.accept(2)
+    monkeypatch.setattr(os, "replace", real_replace)
+    assert s.last_save_error is None  # saved, in the user's folder
+    found = find_session(image)
+    assert found is not None and ReviewSession.load(found).status == s.status, (found, s.path)
+
+
+def test_an_image_whose_file_name_is_not_utf8_has_a_session(tmp_path):
+    """On Linux a file name in a legacy encoding (b'w\\xf6rm.tif', Latin-1) reaches Python with
+    a surrogate ('w\\udcf6rm.tif'). find_session (what opening the image calls) raises a raw
+    UnicodeEncodeError: user_session_file hashes the path with ``.encode('utf-8')``. Expected:
+    None (no session yet) and, once saved beside the image, that file."""
+    image = tmp_path / os.fsdecode(b"w\xf6rm.tif")
+    image.write_bytes(b"II*\x00")
+    assert find_session(image) is None
+    s = _session(image=str(image), path=session_file_for(image))
+    s.accept(0)
+    assert find_session(image) == s.path
+
+
+def test_set_aside_of_a_session_path_that_cannot_be_probed_is_none_or_an_fdlc_error(tmp_path):
+    """set_aside returns None when there is no file, FdlcError when it cannot rename it. For the
+    path session_file_for gives an image with a long name (beside it: the folder is writable, but
+    the name is over 255 bytes) it raises a raw OSError (ENAMETOOLONG) from ``path.is_file()``,
+    which the widget (catching FdlcError around set_aside) shows as a traceback."""
+    image = tmp_path / ("w" * 240 + ".tif")
+    image.write_bytes(b"II*\x00")
+    path = session_file_for(image)
+    try:
+        assert set_aside(path) is None
+    except FdlcError:
+        pass
+
+
+@pytest.mark.parametrize("kept", [[0, 0, 1, 2], [0, 1, 2, 9], [0, 1, 2, -1]], ids=["row-twice", "no-such-row", "negative"])
+def test_replace_table_refuses_a_kept_list_that_is_not_one_old_row_per_new_neuron(kept):
+    """``replace_table(table, kept)`` (public: "kept[j] is the old row of new row j") takes
+    ``kept`` unchecked: an old row given twice copies its decision to two neurons (AVAL decided
+    for neurons 0 and 1: "a name belongs to one neuron", and the export read back loses it), a
+    row the table lacks raises a raw IndexError, and -1 silently copies the last row's
+    decision. docs/gui.md §7: scripts get a core problem as an FdlcError; the session unchanged."""
+    s = _session()
+    s.accept(0)
+    s.accept(3)
+    t = s.table
+    with pytest.raises(FdlcError):
+        s.replace_table(NeuronTable(t.xyz), kept)
+    assert s.user_id == ["AVAL", "", "", "RMDR"] and s.table is t

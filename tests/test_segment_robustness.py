@@ -314,3 +314,110 @@ def test_cli_segment_does_not_find_nuclei_in_a_channel_given_as_ignored(tmp_path
     err = capsys.readouterr().err
     assert code == 2 and "no channel to find nuclei in" in err, (code, err)
     assert not out.exists()
+
+
+VOX_h = (1.0, 0.25, 0.25)
+
+
+@pytest.fixture(scope="module")
+def worm():
+    """20 well-spaced nuclei, 4 x 15 x 90 x 124 uint16 (segment_stack finds all 20)."""
+    table = random_worm(20, size_um=(16, 8, 6), min_spacing_um=2.8, seed=1)
+    return render_stack(table, seed=0, peak_photons=200, gut=False)
+
+
+def _balls(centres_um, radius_um, peak, shape=(16, 96, 96), seed=0):
+    """Ball nuclei blurred by a NeuroPAL-like PSF (0.7 µm in z, 0.15 in x/y), Poisson noise on
+    a background of 100 (as test_segment_robustness._one_nucleus)."""
+    z, y, x = np.ogrid[: shape[0], : shape[1], : shape[2]]
+    inside = np.zeros(shape, bool)
+    for c in centres_um:
+        c = np.asarray(c) / VOX_h
+        r = np.sqrt(((z - c[0]) * VOX_h[0]) ** 2 + ((y - c[1]) * VOX_h[1]) ** 2 + ((x - c[2]) * VOX_h[2]) ** 2)
+        inside |= r <= radius_um
+    blob = ndimage.gaussian_filter(inside.astype(float), (0.7 / VOX_h[0], 0.15 / VOX_h[1], 0.15 / VOX_h[2]))
+    blob /= blob.max()
+    return np.random.default_rng(seed).poisson(100 + peak * blob).astype(float)
+
+
+@pytest.mark.parametrize("value", [0, 100], ids=["zeros", "constant"])
+def test_a_blank_colour_channel_reads_as_no_colour_not_as_minus_w(worm, value):
+    """An R / G channel that holds one value (not acquired, written as 0 or the camera offset)
+    has no colour: its z-scores should be 0 for every nucleus, as measure_colours gives for B
+    or with unmix=False (sd 0 -> zeros). Instead the bleed-through removal subtracts
+    slope * W with a slope of ~6e-6 (minimize_scalar never returns exactly 0), and the z-score
+    blows that up to exactly -W: a fake colour, perfectly anti-correlated with W, which
+    `fdlc label` then reads as a real R / G reading (it only drops columns of one value)."""
+    stack, truth = worm
+    data = np.asarray(stack.data).copy()
+    data[0] = value  # R
+    data[1] = value  # G
+    colours = measure_colours(Stack(data, stack.voxel_size_zyx, stack.channel_roles), truth.xyz)
+    assert np.allclose(colours["R"], 0), np.round(colours["R"][:5], 3).tolist()
+    assert np.allclose(colours["G"], 0), np.round(colours["G"][:5], 3).tolist()
+
+
+def test_two_saturated_nuclei_stacked_in_z_stay_two():
+    """Two 2.6 µm nuclei 4 µm apart in z (one plane between their edges), W clipped by a 12-bit
+    camera at 3x over range, as in test_a_saturated_nucleus_is_one_nucleus. Unclipped, both are
+    found; docs/segmentation.md step 5: "two clipped neighbours have two plateaus and stay two".
+    The z PSF joins their clipped regions into one plateau, and _one_per_saturated_nucleus
+    merges every detection near one plateau whatever their distance (4 µm, more than a
+    diameter and beyond the valley test's 0.8 diameter): one nucleus, placed midway between
+    them where there is none."""
+    centres = [(6.0, 12.0, 12.0), (10.0, 12.0, 12.0)]
+    plain = _balls(centres, 1.3, 3 * 3995)
+    assert len(segment_stack(Stack(plain[None], VOX_h, ["W"]))) == 2  # unclipped: two
+    clipped = np.minimum(plain, 4095).astype(np.uint16)
+    found = segment_stack(Stack(clipped[None], VOX_h, ["W"]))
+    zyx = found.xyz[:, ::-1]
+    assert len(found) == 2, np.round(zyx, 2).tolist()
+    nearest = np.linalg.norm(zyx[:, None] - np.array(centres)[None], axis=2).min(axis=0)
+    assert (nearest < 1.0).all(), nearest
+
+
+@pytest.mark.parametrize("over", [5.0, 10.0])
+def test_a_saturated_nucleus_is_placed_at_its_plateau_s_centre(over):
+    """A 3 µm nucleus (the default diameter) clipped at 5-10x over a 12-bit range: docs step 5,
+    "the maxima within a third of a diameter of one clipped plateau are one nucleus, at the
+    plateau's centre". The ring's maxima are merged by the valley test first, so one detection
+    is left on the ring; _one_per_saturated_nucleus only moves a plateau's detections when
+    there are two or more (and returns at once for a volume with one detection), so the centre
+    stays 0.7-0.9 µm off in z (the plateau's centre is within 0.02 µm), beyond the documented
+    target of 0.5 µm."""
+    centre = np.array([8.0, 12.1, 12.05])
+    clipped = np.minimum(_balls([centre], 1.5, over * 3995), 4095).astype(np.uint16)
+    found = segment_stack(Stack(clipped[None], VOX_h, ["W"]))
+    assert len(found) == 1
+    error = np.linalg.norm(found.xyz[0, ::-1] - centre)
+    assert error < 0.3, f"centre {error:.2f} µm off"
+
+
+def test_cli_segment_a_huge_voxel_size_is_one_line(tmp_path, worm, capsys):
+    """`--voxel-size 1e160 1 1` (finite and positive, so accepted): the squared distances
+    in _merge_without_valley overflow and cKDTree.query_pairs raises ValueError ("Encountering
+    floating point overflow"), shown as a 30-line traceback with exit 1. Bad input should be
+    one line on stderr with exit 2 (docs/segmentation.md)."""
+    path = tmp_path / "worm.ome.tif"
+    write_tiff(path, worm[0])
+    out = tmp_path / "neurons.csv"
+    try:
+        code = main(["segment", str(path), "--voxel-size", "1e160", "1", "1", "--quiet", "--out", str(out)])
+    except Exception as exc:  # what the user sees as a traceback
+        pytest.fail(f"traceback: {type(exc).__name__}: {exc}")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, (code, err)
+
+
+def test_cli_segment_voxel_size_in_nm_by_mistake_is_not_silent(tmp_path, worm, capsys):
+    """x/y voxel size given in nm for µm (`--voxel-size 1 250 250`): a 3 µm nucleus is then
+    1/80 of a voxel across, and the stack 31 mm wide. The opposite mistake (mm for µm) is
+    refused in one line (docs/segmentation.md), and `fdlc label` warns about tables in nm;
+    here `fdlc segment` silently writes 382 "nuclei" for a stack of 20, with nothing said on
+    stderr. Expected: refused (exit 2, one line) or a warning about the voxel size."""
+    path = tmp_path / "worm.ome.tif"
+    write_tiff(path, worm[0])
+    out = tmp_path / "neurons.csv"
+    code = main(["segment", str(path), "--voxel-size", "1", "250", "250", "--quiet", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 or "voxel" in err.lower(), (code, err)

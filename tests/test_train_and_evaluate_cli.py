@@ -824,3 +824,156 @@ def test_resume_does_not_take_the_device_the_checkpoint_trained_on(stopped_run, 
     meta["train_config"]["device"] = "nonexistent-device"
     meta_path.write_text(json.dumps(meta))
     assert run("train", "--corpus", fake_corpus, "--no-calibrate", "--out", stopped_run, "--steps", "6", "--resume") == 0
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+TINY_h = {"model": {"layers": 1, "dim": 32}, "steps": 3, "batch_size": 2, "eval_every": 3,
+        "val_pairs_per_lab": 1, "val_worms_per_lab": 1, "max_neurons": 40}
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory, write_corpus) -> Path:
+    worms = {lab: [generate_worm(seed=100 + 3 * k + i) for i in range(3)] for k, lab in enumerate(("NP", "EY"))}
+    return write_corpus(tmp_path_factory.mktemp("corpus"), worms)
+
+
+class TrainingStarted_h(Exception):
+    pass
+
+
+def _no_training(monkeypatch):
+    def sentinel(*args, **kwargs):
+        raise TrainingStarted_h
+        yield  # pragma: no cover
+
+    monkeypatch.setattr("napari_fdlc.train.training_batches", sentinel)
+
+
+def test_calibrate_only_uses_the_threads_it_is_given(tmp_path, corpus, monkeypatch):
+    """docs/model_card.md recalibrates the shipped model with `fdlc train --config ... --threads 2
+    --out <a copy> --calibrate-only` (training/README.md: `--threads 1`). Expected: calibration
+    runs on that many torch threads. Instead `--threads` is silently ignored there: cli._run_train
+    calls calibrate_checkpoint(cfg), which never calls torch.set_num_threads (only train() does),
+    so calibration runs on torch's default (all cores, which the README measured 25x slower on
+    a shared 2-core machine)."""
+    import torch
+
+    import napari_fdlc.train as train_module
+    from napari_fdlc.model import CorrespondenceModel, save_model
+    from napari_fdlc.train import TrainConfig
+
+    out = tmp_path / "ck" / "model"
+    cfg = TrainConfig(corpus=str(corpus), out=str(out), **TINY_h)
+    save_model(CorrespondenceModel(TINY_h["model"]), out, {"train_config": cfg.to_json(), "best_step": 3})
+    seen = {}
+
+    def fake_calibrate(*args, **kwargs):
+        seen["threads"] = torch.get_num_threads()
+        return {}
+
+    monkeypatch.setattr(train_module, "calibrate", fake_calibrate)
+    torch.set_num_threads(2)
+    try:
+        rc = run("train", "--corpus", corpus, "--out", out, "--calibrate-only", "--threads", "1")
+    finally:
+        torch.set_num_threads(1)
+    assert rc == 0
+    assert seen["threads"] == 1, f"--threads 1 given, calibration ran on {seen['threads']} torch threads"
+
+
+def test_train_refuses_a_thread_count_torch_cannot_take_in_one_line(tmp_path, corpus, monkeypatch, capsys):
+    """`fdlc train --threads 2147483648`: expected one line on stderr and exit 2, as for --seed
+    out of range. Instead TrainConfig.check only asks for >= 1 and train() passes it to
+    torch.set_num_threads, which raises `ValueError: Overflow when unpacking long`: a traceback
+    (exit 1)."""
+    _no_training(monkeypatch)
+    config = tmp_path / "tiny.json"
+    config.write_text(json.dumps(TINY_h))
+    try:
+        rc = run("train", "--config", config, "--corpus", corpus, "--no-calibrate", "--out", tmp_path / "m",
+                 "--threads", str(2**31))
+    except TrainingStarted_h:
+        pytest.fail("a thread count torch cannot take was accepted")
+    except Exception as exc:  # what the user sees as a traceback
+        pytest.fail(f"traceback instead of one line: {type(exc).__name__}: {exc}")
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("fdlc: error:"), err
+
+
+def test_train_out_whose_record_cannot_be_written_is_refused_before_training(tmp_path, corpus, capsys):
+    """docs/cli.md: "Everything is checked before the first step: ... that `--out` can be
+    written". Without --config, only the weights path (OUT.safetensors) is checked; OUT.json is
+    checked only when --config is given. With OUT.json a folder the run trains until its first
+    validation, then save_model fails naming its temporary file (`fdlc: error: .../m.json.tmp:
+    Is a directory`, a file the user never named) and leaves OUT.safetensors behind without the
+    JSON that makes it loadable. Expected: refused before training, naming m.json, nothing written."""
+    out = tmp_path / "run" / "m"
+    (tmp_path / "run" / "m.json").mkdir(parents=True)
+    rc = run("train", "--corpus", corpus, "--no-calibrate", "--out", out, "--steps", "2", "--batch-size", "1",
+             "--eval-every", "2", "--val-pairs-per-lab", "1")
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert ".tmp" not in err[0] and "m.json" in err[0], err[0]
+    assert '"step"' not in captured.out, "it trained (and validated) before refusing the --out"
+    assert not out.with_suffix(".safetensors").exists(), "weights left without their JSON"
+
+
+def test_saved_weights_are_readable_like_the_json_beside_them(tmp_path):
+    """save_model writes OUT.safetensors with safetensors' save_file, which creates the file with
+    mode 0600, while OUT.json (Path.write_text) and every atomic_write output get the permissions
+    a plain open() gives (0644 under umask 022; errors.atomic_write chmods its temporary file for
+    exactly that). A trained model on a shared machine is then unreadable to the other users who
+    would `fdlc label --weights` it. Expected: both files with 0o666 & ~umask."""
+    from napari_fdlc.model import CorrespondenceModel, save_model
+
+    path = tmp_path / "model"
+    save_model(CorrespondenceModel(TINY_h["model"]), path, {})
+    umask = os.umask(0)
+    os.umask(umask)
+    expected = 0o666 & ~umask
+    modes = {p.suffix: p.stat().st_mode & 0o777 for p in (path.with_suffix(".safetensors"), path.with_suffix(".json"))}
+    assert modes == {".safetensors": expected, ".json": expected}, {k: oct(v) for k, v in modes.items()}
+
+
+def test_a_configurations_resume_true_is_not_silently_dropped(tmp_path, corpus, capsys):
+    """TrainConfig has `resume` ("continue from the checkpoint at out"), and flags override the
+    --config JSON only when given (cli.md; a config's `"calibrate": false` is kept). A config
+    with `"resume": true` and `"out"` naming a checkpoint, run without --resume: cli._run_train
+    sets `cfg.resume = args.resume` (False), so a fresh run starts and its first validation
+    (best starts at -1) replaces the checkpoint it was told to continue: weights and history
+    lost. Expected: the run resumes (or is refused); the checkpoint's better record is kept."""
+    out = tmp_path / "run" / "m"
+    first = tmp_path / "first.json"
+    first.write_text(json.dumps({**TINY_h, "steps": 6, "out": str(out)}))
+    assert run("train", "--config", first, "--corpus", corpus, "--no-calibrate", "--stop-at", "3") == 0
+    meta_path = out.with_suffix(".json")
+    meta = json.loads(meta_path.read_text())
+    meta["history"][-1]["mean_top1"] = 1.0  # a checkpoint no continuation can beat
+    meta_path.write_text(json.dumps(meta))
+    before = out.with_suffix(".safetensors").read_bytes()
+
+    go_on = tmp_path / "go_on.json"
+    go_on.write_text(json.dumps({**TINY_h, "steps": 6, "out": str(out), "resume": True, "seed": 7}))
+    capsys.readouterr()
+    run("train", "--config", go_on, "--corpus", corpus, "--no-calibrate")
+    history = json.loads(meta_path.read_text())["history"]
+    assert history[0]["mean_top1"] == 1.0, f"the checkpoint's record was replaced by a fresh run: {history}"
+    assert out.with_suffix(".safetensors").read_bytes() == before, "the checkpoint's weights were replaced"
+
+
+def test_a_stage_configuration_without_stop_at_runs_its_whole_schedule():
+    """docs/training/README.md: "`--stop-at` ends the run earlier without changing the schedule
+    (without it a stage runs its whole schedule: 8000-14000 steps for stages 1-4, hours ...)".
+    Instead stage1-4.json each hold a `stop_at` of their own (1200, 500, 2000, 1000), which
+    TrainConfig.from_json keeps: `fdlc train --config docs/training/stage3.json ...` without
+    --stop-at stops at 2000 of 14000 steps. stage3/stage4's values also disagree with the
+    documented lineage (--stop-at 3400 and 2000; model_card.md's table: 3400 and 2000 steps run)."""
+    from napari_fdlc.train import TrainConfig
+
+    stops = {stage: TrainConfig.from_json(ROOT / "docs" / "training" / f"{stage}.json").stop_at
+             for stage in ("stage1", "stage2", "stage3", "stage4")}
+    assert all(stop is None for stop in stops.values()), f"without --stop-at each stops at: {stops}"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -71,11 +72,14 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
 
     # what reproduces this report: the options given, as given
     corpus = corpus or os.environ.get("FDLC_CORPUS") or None  # the report says which corpus it read
+    labs = [lab.strip() for lab in labs] if labs else labs  # as the corpus reads them
+    # quoted, so that a folder with a space in its name reads back as one argument
     command = ["fdlc evaluate"] + [f"{flag} {value}" for flag, value in (
-        ("--corpus", corpus), ("--labs", " ".join(labs or [])), ("--weights", weights)) if value]
+        ("--corpus", corpus and shlex.quote(str(corpus))), ("--labs", " ".join(shlex.quote(lab) for lab in labs or [])),
+        ("--weights", weights and shlex.quote(str(weights)))) if value]
     command += [f"--pairs-per-lab {pairs_per_lab}", f"--panel-worms-per-lab {panel_worms_per_lab}",
                 f"--synthetic-pairs {synthetic_pairs}", *([] if with_cpd else ["--no-cpd"])]
-    command = " ".join(command + ([f"--out {out}"] if out is not None else []))
+    command = " ".join(command + ([f"--out {shlex.quote(str(out))}"] if out is not None else []))
     identifier = Identifier.load(weights)
     worms = load_corpus(corpus)
     present = {w.lab for w in worms}
@@ -95,7 +99,11 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
         if not others:
             raise FdlcError(f"lab {lab}: the atlas beside a template and the panel are built from the other labs' "
                             "worms (a lab is never scored on its own), and the corpus has no other lab")
-        atlas = build_atlas(others)
+        try:
+            atlas = build_atlas(others)
+        except FdlcError as exc:
+            raise FdlcError(f"lab {lab}: the atlas beside a template and the panel are built from the other labs' "
+                            f"{len(others)} worm(s): {exc}") from None
         methods = {
             ("pairs", "fdlc", "position"): lambda T, t: identifier.label(t, [T], use_colour=False, atlas=atlas),
             ("pairs", "fdlc", "colour"): lambda T, t: identifier.label(t, [T], use_colour=True, atlas=atlas),
@@ -185,16 +193,19 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
     if out is not None:
         # The plot needs matplotlib (the [test] extra); without it the report is written alone.
         plotted = False
+        # named after the report (two reports in one folder had one plot), beside the report
+        # itself where --out is a link (atomic_write follows it)
+        plot = f"images/{out.stem}_calibration.png"
         if not _is_stream(out):  # beside a file (a stream such as /dev/null has no folder to put it in)
             try:
-                plotted = _plot_reliability(calib, out.parent / "images" / "calibration.png", reliability)
+                plotted = _plot_reliability(calib, Path(os.path.realpath(out)).parent / plot, reliability)
             except OSError as exc:  # the finished run is not lost for its plot
-                warn(f"{out.parent / 'images' / 'calibration.png'}: the reliability plot could not be written "
+                warn(f"{out.parent / plot}: the reliability plot could not be written "
                      f"({exc.strerror or exc}); the report is written without it")
         with atomic_write(out, "w", encoding="utf-8") as handle:
             handle.write("# Accuracy on the annotated corpus\n\n")
             handle.write(f"Made by `{command}` ({minutes:.1f} min). See docs/benchmarks.md for how to read it.\n\n")
-            handle.write(report + ("\n\n![reliability](images/calibration.png)\n" if plotted else "\n"))
+            handle.write(report + (f"\n\n![reliability]({plot})\n" if plotted else "\n"))
     return report
 
 

@@ -65,6 +65,8 @@ def segment_recording(args: argparse.Namespace, path: str, prog: str, check=None
         # every channel said: '-' (not used) is not a channel of unknown role to fall back on
         raise FdlcError(f"--channels {' '.join(args.channels)}: no channel to find nuclei in (GFP is activity, not "
                         "nuclei); give the W (pan-neuronal) channel's role, or the colour channels'")
+    check_detection_options(args.diameter_um, args.threshold, names=("--diameter-um", "--threshold"),
+                            voxel_size_zyx=series.voxel_size_zyx)  # the file's, when not given
     if check is not None:
         check(series)
     z, y, x = series.shape_zyx

@@ -24,14 +24,25 @@ from .errors import FdlcError, check_output, warn
 from .geometry import CHIRALITIES
 
 
+class _InOrder(argparse.Action):
+    """Appends like action="append", and records the option in ``references``: --reference and
+    --reference-t in the order typed (the first reference gives the track IDs; files used to
+    come first whatever the order)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
+        namespace.references = [*(getattr(namespace, "references", None) or []), (self.dest, values)]
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("inputs", nargs="+", metavar="INPUT",
                         help="a CSV with a t column, a folder of CSVs, several CSVs (one volume each), "
                         "or an image recording (TIFF, OME-TIFF or ND2 with a time axis; segmented first)")
-    parser.add_argument("--reference", action="append", default=[], metavar="R.csv",
+    parser.add_argument("--reference", action=_InOrder, default=[], metavar="R.csv",
                         help="reference volume of the same worm, labelled or not (repeatable); default: the first time point")
-    parser.add_argument("--reference-t", action="append", default=[], metavar="T",
-                        help="use the volume at time point T of the sequence as a reference (repeatable)")
+    parser.add_argument("--reference-t", action=_InOrder, default=[], metavar="T",
+                        help="use the volume at time point T of the sequence as a reference (repeatable); "
+                             "references count in the order given, the first one's rows being the track IDs")
     parser.add_argument("--search", choices=("propagate", "full"), default="propagate",
                         help="propagate (default): full search (registration) on the first volume only, then "
                         "each volume is placed from the one before; full: search every volume (slower)")
@@ -81,8 +92,9 @@ def run(args: argparse.Namespace) -> int:
         _reference_time(raw)
     if args.method != "fdlc" and len(args.reference) + len(args.reference_t) > 1:
         raise FdlcError(f"--method {args.method} takes one reference")
-    references = [read_volume(r, "a reference is one volume: give one time point (or name it with --reference-t)")
-                  for r in args.reference]
+    in_order = getattr(args, "references", None) or []
+    from_file = {k: read_volume(r, "a reference is one volume: give one time point (or name it with --reference-t)")
+                 for k, (kind, r) in enumerate(in_order) if kind == "reference"}
     # The models next: weights that cannot be read are refused before a recording's segmentation.
     identifier = follower = None
     if args.method == "fdlc":
@@ -110,9 +122,9 @@ def run(args: argparse.Namespace) -> int:
 
         times, volumes, _ = segment_recording(args, recording, "fdlc track", check=time_points_exist)
         seq = Sequence(volumes, times, [""] * len(volumes))
-    for raw in args.reference_t:
-        references.append(_volume_at(seq, raw))
-    warn_implausible_scales([seq.volumes[0], *references])
+    references = [from_file[k] if kind == "reference" else _volume_at(seq, raw) for k, (kind, raw) in enumerate(in_order)]
+    # a reference that is the first volume itself is warned of once
+    warn_implausible_scales([seq.volumes[0], *(r for r in references if r is not seq.volumes[0])])
     start = time.perf_counter()
 
     def progress(done: int, total: int) -> None:

@@ -166,7 +166,7 @@ def _run_train(args) -> int:
         raise FdlcError(f"{args.config}: a new run from this checkpoint's configuration would replace the checkpoint; "
                         "give --out (or --resume to continue it)")
     cfg.out = args.out or cfg.out
-    cfg.resume = args.resume
+    cfg.resume = args.resume or cfg.resume  # a recipe's "resume": true (a checkpoint's record clears it)
     if args.no_calibrate:  # else the configuration's own choice
         cfg.calibrate = False
     if args.colour_input:
@@ -190,8 +190,10 @@ def _run_train(args) -> int:
     # weights a new run starts from.
     starts_from = [model_files(cfg.init_from)[0]] if cfg.init_from and not cfg.resume else []
     check_output(model_files(cfg.out)[0], inputs=starts_from, create_folder=True)
-    if args.config and not (cfg.resume or args.calibrate_only):  # a new run's record would replace its recipe
-        check_output(model_files(cfg.out)[1], inputs=[args.config], create_folder=True)
+    if not args.calibrate_only:  # the record too (a folder of its name failed at the first save); a new
+        # run's record would replace its recipe
+        check_output(model_files(cfg.out)[1], inputs=[args.config] if args.config and not cfg.resume else [],
+                     create_folder=True)
     if args.calibrate_only and cfg.task != "identify":
         raise FdlcError("--calibrate-only: a tracking model has no inference settings to fit (they stay at their defaults)")
     if args.calibrate_only:
@@ -227,7 +229,7 @@ def _run_handedness(args) -> int:
     for path, answer in zip(args.tables, answers):
         print(f"{path}: {answer}")
     same, mirrored = answers.count("same"), answers.count("mirrored")
-    if len(answers) > 1 and same != mirrored:
+    if same != mirrored:  # one worm too: the advice is what the command is for
         majority = "same" if same > mirrored else "mirrored"
         print(f"{max(same, mirrored)} of {len(answers)} {majority}: use --chirality {majority}")
     elif len(answers) > 1:

@@ -54,7 +54,10 @@ def refuse_out_in_corpus(out: Path, corpus: str | os.PathLike | None, what: str)
 
 
 def load_corpus(path: str | os.PathLike | None = None, labs: tuple[str, ...] | list[str] | None = None) -> list[Worm]:
+    given = path
     path = Path(path) if path else default_corpus_path()
+    if given and not (path / "worms.csv").exists():  # the folder named: said where it looked
+        raise FdlcError(f"{path}: no worms.csv there; give --corpus the NeuroPAL corpus folder that holds it")
     if path is None or not (path / "worms.csv").exists():
         raise FdlcError(
             "NeuroPAL corpus not found: pass --corpus PATH (the folder with worms.csv) or set FDLC_CORPUS"

@@ -136,10 +136,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs):
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
-        # mkstemp creates 0600; give the file the permissions a plain open() would have.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
+        plain_permissions(tmp)
         try:
             os.replace(tmp, path)
         except OSError as exc:  # e.g. a folder of that name: said of the file asked for
@@ -150,6 +147,14 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs):
         except FileNotFoundError:
             pass
         raise
+
+
+def plain_permissions(path: str | Path) -> None:
+    """Give a file the permissions a plain open() would have: mkstemp, and safetensors, create
+    0600 (trained weights that other users of a shared machine could not read)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
 
 
 def model_files(path: str | Path) -> tuple[Path, Path]:

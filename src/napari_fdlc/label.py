@@ -126,7 +126,8 @@ def label_files(
     shared_handedness = applies and len(test_tables) > 1 and shared_handedness is not False
     adapts = not template_tables and can_adapt_colours(test_tables, use_colour)
     if adapt_colours and not adapts:
-        warn(f"--adapt-colours is for the built-in panel with colour (R, G, B) in at least {ADAPT_MIN_TESTS} tests: ignored here")
+        warn(f"--adapt-colours is for the built-in panel with colour (R, G, B) in at least {ADAPT_MIN_TESTS} recordings "
+             f"(copies and tests of fewer than {FEW_NEURONS} neurons not counted): ignored here")
     adapt_colours = adapts and adapt_colours is not False
     if method == "fdlc":
         from .reference import load_panel

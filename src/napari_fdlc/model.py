@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .colour import IDENTITY_CHANNELS
-from .errors import ModelError, model_files
+from .errors import ModelError, model_files, plain_permissions
 
 DEFAULT_CONFIG = {
     "dim": 64,
@@ -273,6 +273,7 @@ def save_model(model: CorrespondenceModel, path: str | Path, card: dict | None =
     json_tmp = Path(f"{config_path}.tmp")
     try:
         save_file({k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}, str(tmp))
+        plain_permissions(tmp)
         json_tmp.write_text(json.dumps({"config": model.config, **(card or {})}, indent=2))
         tmp.replace(weights)
         json_tmp.replace(config_path)

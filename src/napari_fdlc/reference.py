@@ -31,6 +31,7 @@ statistics — the bundled sample data is made this way.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
@@ -143,7 +144,7 @@ class Atlas:
     def load(cls, path: str | Path) -> "Atlas":
         path = Path(path)
         try:
-            header = path.read_text().splitlines()[0]
+            header = path.read_text(encoding="utf-8").splitlines()[0]  # as save wrote it, whatever the locale
             df = pd.read_csv(path, comment="#")
             counts, _, scale = header.partition("; worm scale ")
             worms = int(counts.split(":")[1].split()[0])
@@ -257,7 +258,9 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
                 entry["pos"].append(a[i])
                 if col is not None:
                     entry["col"].append(col[i])
-    names = sorted(n for n, e in stats.items() if len(e["pos"]) >= max(2, min_frequency * used))
+    # in whole worms: 0.28 × 25 is 7.000000000000001 in floats, and a name seen in 7 was dropped
+    least = max(2, math.ceil(round(min_frequency * used, 9)))
+    names = sorted(n for n, e in stats.items() if len(e["pos"]) >= least)
     if used < 2 or len(names) < MIN_ATLAS_NAMES:
         raise FdlcError(f"no atlas from these {len(tables)} worm(s): {used} share 4 or more names with the best-named one, "
                         f"and {len(names)} name(s) recur in enough of them; an atlas needs 2 such worms and "

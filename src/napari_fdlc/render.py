@@ -8,8 +8,11 @@ What makes them realistic enough to tune a detector on:
 - the pan-neuronal W channel (TagRFP-T) shows every nucleus with log-normal brightness; R, G, B
   come from the table's colours (z-scores or raw values, mapped to positive intensities);
 - a camera offset, background with a slow gradient, a faint haze over the worm body, gut-like
-  autofluorescence (a large textured blob with granules, bright in B/G, weak in R/W) at the
-  posterior end, channel bleed-through, Poisson shot noise and Gaussian read noise.
+  autofluorescence (a large textured blob with granules, bright in B/G, weak in R/W) past the
+  neurons at +x (``align_worm`` does not orient the body axis: in about half the worms, the
+  bundled sample's among them, that is past the nose, not the posterior end; what it tests,
+  a bright textured blob beside the neurons, is the same), channel bleed-through, Poisson shot
+  noise and Gaussian read noise.
 
 Each nucleus is evaluated only in a small box around it, so a 200-neuron head renders in well
 under a second; the cost is dominated by the Poisson draw over the whole volume.
@@ -141,14 +144,14 @@ def render_stack(
     zyx = xyz[:, ::-1]
     margin = np.asarray(p.margin_um, dtype=float)
     if shape_zyx is None:
-        extent = zyx.max(axis=0) - zyx.min(axis=0) + 2 * margin
-        shape = np.maximum(np.ceil(extent / vox).astype(int) + 1, 3)
+        shape = _shape_of(zyx.max(axis=0) - zyx.min(axis=0) + 2 * margin, vox)
     else:
         shape = np.asarray(shape_zyx, dtype=int)
-        if shape.shape != (3,) or (shape < 1).any() or shape.prod() > MAX_VOXELS:
+        # the product in floats: in int64 (2**21, 2**21, 2**22) came to 0 and passed
+        if shape.shape != (3,) or (shape < 1).any() or np.prod(shape.astype(float)) > MAX_VOXELS:
             raise ImageError(f"render: shape_zyx must be 3 positive sizes of at most {MAX_VOXELS:.0e} voxels in all, "
                              f"not {tuple(shape_zyx)}")
-    if shape.prod() > MAX_VOXELS:
+    if np.prod(shape.astype(float)) > MAX_VOXELS:
         raise ImageError(f"render: the neurons span {tuple(int(v) for v in shape)} voxels, more than {MAX_VOXELS:.0e}: "
                          "are the positions in µm?")
     centre_um = (shape - 1) * vox / 2
@@ -246,8 +249,8 @@ def render_stack(
         extra=extra,
         source=f"{table.source} (rendered)",
     )
-    if "R" not in table.colours:  # the truth carries the colours that were actually rendered
-        for k, c in enumerate(("R", "G", "B")):
+    for k, c in enumerate(("R", "G", "B")):  # the truth carries the colours that were actually rendered
+        if c not in table.colours:
             truth.colours[c] = amps[:, k]
     return stack, truth.subset(np.flatnonzero(inside))
 
@@ -263,22 +266,36 @@ def render_recording(
     the source neuron of each of their neurons (``identities``, -1 = spurious), one stack per
     time point, all of one shape (the largest extent of any volume), each volume centred in it
     (drift in the field of view is left out) and in its own frame (no alignment: the worm turns
-    and bends as the volumes do). A neuron keeps its size, shape and brightness over time; each
+    and bends as the volumes do). A neuron keeps its size (within the cap that keeps it off its
+    nearest neighbour in each volume), shape and brightness over time; each
     time point has its own noise (seed ``seed + 1 + t``). Returns the recording (T, C, Z, Y, X)
     and the ground truth per time point, as :func:`render_stack`'s."""
     if not volumes:
         raise ImageError("render: the recording has no volume")
-    p = RenderParams(**{**(params.__dict__ if params else {}), **overrides})
+    if len(identities) != len(volumes):  # zip dropped the volumes past the shorter list
+        raise ImageError(f"render: {len(volumes)} volumes but {len(identities)} identity arrays; give one per volume")
+    for t, v in enumerate(volumes):  # before the extent below is taken over them
+        if len(v) == 0 or not np.isfinite(v.xyz).all():
+            raise ImageError(f"render: volume {t} of the recording is empty or has positions that are not finite numbers")
+    p = _checked(RenderParams(**{**(params.__dict__ if params else {}), **overrides}))
     vox = np.asarray(p.voxel_size_zyx, dtype=float)
     margin = np.asarray(p.margin_um, dtype=float)
-    extent = np.max([np.ptp(v.xyz[:, ::-1], axis=0) for v in volumes], axis=0) + 2 * margin
-    shape = np.maximum(np.ceil(extent / vox).astype(int) + 1, 3)
+    shape = _shape_of(np.max([np.ptp(v.xyz[:, ::-1], axis=0) for v in volumes], axis=0) + 2 * margin, vox)
     rendered = [render_stack(v, p, shape_zyx=shape, align=False, seed=seed + 1 + t, identity=ids, identity_seed=seed)
                 for t, (v, ids) in enumerate(zip(volumes, identities))]
     first = rendered[0][0]
     series = StackSeries(np.stack([stack.data for stack, _ in rendered]), first.voxel_size_zyx, first.channel_roles,
                          source=f"<rendered recording seed={seed}>", channel_names=first.channel_names)
     return series, [truth for _, truth in rendered]
+
+
+def _shape_of(extent_zyx: np.ndarray, vox: np.ndarray) -> np.ndarray:
+    """Voxels (z, y, x) that hold ``extent_zyx`` µm; refused past MAX_VOXELS while still in floats
+    (positions ×1e20 overflowed to a 3 × 3 × 3 stack, rendered empty without a word)."""
+    voxels = np.ceil(extent_zyx / vox) + 1
+    if not np.isfinite(voxels).all() or np.prod(voxels) > MAX_VOXELS:
+        raise ImageError(f"render: the neurons span more than {MAX_VOXELS:.0e} voxels: are the positions in µm?")
+    return np.maximum(voxels.astype(int), 3)
 
 
 def spread_apart(xyz: np.ndarray, min_spacing_um: float, iterations: int = 20) -> np.ndarray:
@@ -392,7 +409,8 @@ def _add_background(photons, zyx, p: RenderParams, channels, shape, vox, rng) ->
 
 
 def _gut(zyx, p: RenderParams, shape, vox, rng) -> np.ndarray | None:
-    """Relative gut autofluorescence: a textured ellipsoid past the posterior-most neurons."""
+    """Relative gut autofluorescence: a textured ellipsoid past the neurons at +x (the posterior
+    end only when the worm lies that way; see the module's docstring)."""
     posterior = zyx[:, 2].max()
     spread = np.maximum(zyx.std(axis=0), 2.0)
     centre = np.array([zyx[:, 0].mean(), zyx[:, 1].mean(), posterior + rng.uniform(4.0, 12.0)])

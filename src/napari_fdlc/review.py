@@ -135,7 +135,7 @@ def _is(path: Path, test) -> bool:
 
 def user_session_file(key: str) -> Path:
     resolved = str(Path(key).resolve()) if _is_path_key(key) else key
-    digest = hashlib.sha1(resolved.encode("utf-8")).hexdigest()[:12]
+    digest = hashlib.sha1(os.fsencode(resolved)).hexdigest()[:12]  # a file name in a legacy encoding too
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(key).name if _is_path_key(key) else key).strip("_.") or "image"
     return user_session_dir() / f"{stem[:60]}-{digest}.json"
 
@@ -249,7 +249,7 @@ def set_aside(path: str | os.PathLike) -> Path | None:
     ``<image>.fdlc-session.<date-time>.json``, which is never restored by itself but keeps every
     decision. Returns the new name (None when there was no file)."""
     path = Path(path)
-    if not path.is_file():
+    if not _is(path, Path.is_file):
         return None
     stem = path.name[: -len(SESSION_SUFFIX)] if path.name.endswith(SESSION_SUFFIX) else path.stem
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -467,7 +467,7 @@ class ReviewSession:
             self._emit("save_error", None)
             return False
         except OSError as exc:
-            fallback = user_session_file(self.image or str(self.path))
+            fallback = user_session_file(self.image or _image_of(self.path))
             if fallback != self.path:
                 try:
                     self.save(fallback)
@@ -548,11 +548,11 @@ class ReviewSession:
             table = NeuronTable(xyz, colours, extra=extra, source=source)
             session = cls(
                 table,
-                threshold=float(d.get("threshold", DEFAULT_THRESHOLD)),
+                threshold=_threshold_or_default(d.get("threshold", DEFAULT_THRESHOLD)),
                 voxel_size_zyx=d.get("voxel_size_zyx"),
                 image=d.get("image"),
                 path=path,
-                names=d.get("vocabulary") or (),
+                names=[v for v in d.get("vocabulary") or () if isinstance(v, str)],
             )
             s = session._s
             s.auto_id = [str(x or "") for x in nd["auto_id"]]
@@ -562,6 +562,8 @@ class ReviewSession:
             s.user_id = [str(x or "") for x in nd["user_id"]]
             s.user_conf = np.asarray(_nan(nd["user_conf"]), dtype=float)
             s.status = [str(x) for x in nd["status"]]
+            if not np.isfinite(xyz).all():  # a position of null: its export could not be read back
+                raise ValueError("a neuron without a position")
             s.labelled = bool(d.get("labelled", any(s.auto_id)))
             order = [int(i) for i in d.get("order") or range(n)]
             s.order = order if sorted(order) == list(range(n)) else list(range(n))
@@ -573,6 +575,7 @@ class ReviewSession:
         lengths |= {len(nd[f"cand_{k + 1}"]) for k in range(K)}
         if bad or lengths != {n}:
             raise FdlcError(f"{source}: damaged session file (inconsistent neuron rows)")
+        _agreeing_decisions(s)
         holder: dict[str, int] = {}
         for i, (name, st) in enumerate(zip(s.user_id, s.status)):  # a hand-edited file: one neuron per name
             if st != "auto" and name and holder.setdefault(name, i) != i:
@@ -585,7 +588,7 @@ class ReviewSession:
         """Read a session file; later changes are saved back to the same file."""
         path = Path(path)
         try:
-            d = json.loads(path.read_text(encoding="utf-8"))
+            d = json.loads(path.read_text(encoding="utf-8-sig"))  # a byte-order mark: Notepad's
         except FileNotFoundError:
             raise FdlcError(f"{path}: no such session file") from None
         except (OSError, ValueError, RecursionError) as exc:
@@ -784,6 +787,10 @@ class ReviewSession:
         new row ``j`` (None for a new neuron). Undoable."""
         if len(kept) != len(table):
             raise FdlcError("replace_table: one entry of 'kept' per new row is needed")
+        old_rows = [o for o in kept if o is not None]
+        if any(isinstance(o, bool) or not isinstance(o, (int, np.integer)) or not 0 <= o < len(self) for o in old_rows) \
+                or len(set(old_rows)) != len(old_rows):
+            raise FdlcError(f"replace_table: 'kept' must name each old row (0 to {len(self) - 1}) at most once, or None")
 
         def change(s: _State) -> None:
             old = s.copy()
@@ -975,6 +982,40 @@ def _check_voxel_size(voxel) -> tuple[float, float, float] | None:
     if len(values) != 3 or not all(math.isfinite(v) and v > 0 for v in values):
         raise FdlcError(f"voxel_size_zyx {voxel!r} is not three positive numbers (µm)")
     return values
+
+
+def _image_of(session_path: Path) -> str:
+    """The image a session file beside it belongs to (``worm.tif`` for
+    ``worm.tif.fdlc-session.json``), where find_session looks; else the file itself."""
+    text = str(session_path)
+    return text[: -len(SESSION_SUFFIX)] if text.endswith(SESSION_SUFFIX) else text
+
+
+def _threshold_or_default(t) -> float:
+    """A session file's threshold; one of the wrong kind is ignored, as its other settings are
+    (it made the whole file 'damaged', its decisions set aside)."""
+    try:
+        return _check_threshold(t)
+    except FdlcError:
+        return DEFAULT_THRESHOLD
+
+
+def _agreeing_decisions(s) -> None:
+    """Make a hand-edited file's decisions say one thing: a name written ``AVAL?`` is the name
+    AVAL, unsure; a status follows the name (a name with status 'auto' is a decision, a decision
+    without a name is none) and the confidence the status. What the session showed and what it
+    exported disagreed (``AVAL??`` shown, an 'auto' name blocking it for every other neuron)."""
+    for i, (raw, st) in enumerate(zip(s.user_id, s.status)):
+        name, conf = parse_name(raw)
+        if not name:
+            s.user_id[i], s.user_conf[i], s.status[i] = "", np.nan, "auto"
+            continue
+        if conf == UNSURE_CONF or st == "unsure":
+            st = "unsure"
+        elif st not in ("accepted", "corrected"):
+            st = "accepted" if name == s.auto_id[i] else "corrected"
+        s.user_id[i], s.status[i] = name, st
+        s.user_conf[i] = UNSURE_CONF if st == "unsure" else 1.0
 
 
 def _check_threshold(t) -> float:

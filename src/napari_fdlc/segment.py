@@ -54,6 +54,7 @@ from .table import NeuronTable, positions
 Progress = Callable[[float, str], None]
 MAX_DIAMETER_UM = 20.0  # a nucleus diameter beyond this is not a nucleus (neurons' are 2-4 µm)
 SATURATED_MIN_VOXELS = 8  # voxels at the volume's maximum that make a clipped plateau
+SATURATED_MAX_EXTENT = 2.0  # nuclei: a longer plateau is clipped neighbours blurred into one (one clipped 5-10x: 1.7 in z)
 MAX_THRESHOLD = 1000.0  # noise SDs: nuclei stand 10-100 SDs above the noise; beyond this, nothing
 # Below it noise maxima pass as nuclei, more of them than a worm has neurons, and slowly: the
 # bundled sample (151 nuclei) gives 159 at 2 SDs, 6521 at 1.5 and 16508 at 0.5 (in 84 s).
@@ -119,10 +120,18 @@ def detection_image(stack: Stack) -> np.ndarray:
     return total
 
 
-def check_detection_options(diameter_um: float, threshold: float, names=("nucleus diameter", "detection threshold")) -> None:
+def check_detection_options(diameter_um: float, threshold: float, names=("nucleus diameter", "detection threshold"),
+                            voxel_size_zyx=None) -> None:
     """Refuse a nucleus diameter or a detection threshold that cannot be meant (before any
-    work: a diameter of metres would bin the stack away, slowly); ``names`` say them as the
-    caller's options."""
+    work: a diameter of metres would bin the stack away, slowly), or voxels coarser than a
+    nucleus across (more than two in z): nm taken for µm found 382 'nuclei' among 20, silently,
+    and 1e160 µm overflowed into a traceback. ``names`` say them as the caller's options."""
+    if voxel_size_zyx is not None:
+        widest = np.array([2.0, 1.0, 1.0]) * diameter_um
+        if np.any(np.asarray(voxel_size_zyx, dtype=float) > widest):
+            raise ImageError(f"voxel size {' × '.join(f'{v:g}' for v in voxel_size_zyx)} µm (z, y, x) is coarser than a "
+                             f"nucleus of {diameter_um:g} µm (at most {widest[0]:g} in z, {widest[1]:g} in y and x): "
+                             "no nucleus can be found at that sampling; is it in µm (not nm)?")
     if not (0 < diameter_um <= MAX_DIAMETER_UM):
         raise ImageError(f"{names[0]} must be a number of µm above 0 and at most {MAX_DIAMETER_UM:g} "
                          f"(C. elegans neuron nuclei are 2-4 µm; got {diameter_um})")
@@ -172,7 +181,7 @@ def detect_nuclei(volume: np.ndarray, voxel_size_zyx: tuple[float, float, float]
     diameters from every detection (None: one scale only). ``band_passed``: the volume's
     :func:`_band_pass` at this diameter when the caller has it already.
     """
-    check_detection_options(diameter_um, threshold)
+    check_detection_options(diameter_um, threshold, voxel_size_zyx=voxel_size_zyx)
     return _detect_nuclei(volume, voxel_size_zyx, diameter_um, threshold, **options)
 
 
@@ -378,9 +387,12 @@ def _parabola_offsets(response: np.ndarray, idx: np.ndarray) -> np.ndarray:
 def _one_per_saturated_nucleus(volume, vox: np.ndarray, zyx: np.ndarray, score: np.ndarray, diameter_um: float):
     """Detections on one saturated plateau (voxels at the volume's maximum, a clipped camera)
     made one, at the plateau's centre: a flat-topped nucleus band-passes to a ring, whose maxima
-    (2.5-3 µm apart) were kept as two or three nuclei. Left alone without a plateau of
-    ``SATURATED_MIN_VOXELS``: an unclipped maximum is a voxel or two."""
-    if len(zyx) < 2:
+    (2.5-3 µm apart) were kept as two or three nuclei, and a lone one stayed on the ring (0.7-0.9
+    µm off). Left alone without a plateau of ``SATURATED_MIN_VOXELS`` (an unclipped maximum is
+    a voxel or two), and on a plateau longer than ``SATURATED_MAX_EXTENT`` nuclei along an
+    axis: clipped neighbours blurred into one (two nuclei stacked in z), which the detections
+    already tell apart."""
+    if len(zyx) == 0:
         return zyx, score
     top = np.max(volume)
     plateau = np.asarray(volume == top)
@@ -388,7 +400,9 @@ def _one_per_saturated_nucleus(volume, vox: np.ndarray, zyx: np.ndarray, score: 
         return zyx, score
     # The ring's maxima lie just off the plateau: each detection joins the plateau nearest it
     # within a third of a nucleus (plateaus apart stay apart: two clipped neighbours are two).
-    regions, _ = ndimage.label(plateau, np.ones((3, 3, 3), bool))
+    regions, count = ndimage.label(plateau, np.ones((3, 3, 3), bool))
+    one_nucleus = [k + 1 for k, box in enumerate(ndimage.find_objects(regions))
+                   if all((b.stop - b.start) * v <= SATURATED_MAX_EXTENT * diameter_um for b, v in zip(box, vox))]
     reach = np.maximum(np.round(diameter_um / 3 / vox), 1).astype(int)
     region = np.zeros(len(zyx), int)
     for i, centre in enumerate(np.clip(np.round(zyx / vox).astype(int), 0, np.array(volume.shape) - 1)):
@@ -399,10 +413,10 @@ def _one_per_saturated_nucleus(volume, vox: np.ndarray, zyx: np.ndarray, score: 
             distance = np.linalg.norm((near + low) * vox - zyx[i], axis=1)
             if distance.min() <= diameter_um / 3:
                 region[i] = window[tuple(near[np.argmin(distance)])]
-    shared = [r for r in np.unique(region[region > 0]) if (region == r).sum() > 1]
+    held = [r for r in np.unique(region[region > 0]) if r in one_nucleus]
     keep = np.ones(len(zyx), bool)
     zyx, score = zyx.copy(), score.copy()
-    for r, centre in zip(shared, ndimage.center_of_mass(plateau, regions, shared)):
+    for r, centre in zip(held, ndimage.center_of_mass(plateau, regions, held)):
         on = np.flatnonzero(region == r)
         first = on[np.argmax(score[on])]
         zyx[first] = np.asarray(centre) * vox
@@ -539,6 +553,9 @@ def w_bleed_slopes(raw: dict[str, np.ndarray], quantile: float = 0.1, min_neuron
         if role not in raw:
             continue
         colour = raw[role]
+        if np.ptp(colour) == 0:  # a blank channel bleeds nothing (a search's 6e-6 z-scored to -W)
+            slopes[role] = 0.0
+            continue
 
         def pinball(slope):
             residual = colour - slope * w

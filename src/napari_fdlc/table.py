@@ -227,8 +227,13 @@ def parse_name(raw) -> tuple[str, float]:
     return (s, 1.0) if s else ("", 0.0)
 
 
-def _is_neuropal_id(lines: list[str]) -> bool:
-    return any(line.startswith("User ID,") and "Real X (um)" in line for line in lines[:12])
+def _neuropal_id_header(lines: list[str]) -> int | None:
+    """The line of a NeuroPAL_ID export's header (quoted or not), None for another table."""
+    for i, line in enumerate(lines[:12]):
+        cells = [c.strip() for c in next(_csv_records(line), [])]
+        if cells and cells[0] == "User ID" and "Real X (um)" in cells:
+            return i
+    return None
 
 
 def read_table(path: str | os.PathLike, names: bool = True, unique_names: bool = True) -> NeuronTable:
@@ -251,8 +256,8 @@ def read_table(path: str | os.PathLike, names: bool = True, unique_names: bool =
     if not text.strip():
         raise TableError(f"{name}: the file is empty")
     lines = text.splitlines()
-    if _is_neuropal_id(lines):
-        header_line = next(i for i, line in enumerate(lines) if line.startswith("User ID,"))
+    header_line = _neuropal_id_header(lines)
+    if header_line is not None:
         df = _read_csv(text, name, skiprows=header_line)
         return _from_neuropal_id(df, name, first_line=header_line + 2, names=names, unique_names=unique_names)
     df = _read_csv(text, name)
@@ -274,6 +279,8 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
     for _ in range(skiprows):
         next(records, None)
     header = next(records, None)
+    while header == []:  # blank lines above the header (pandas skips them too)
+        header = next(records, None)
     if header is not None and len(header) == 1:
         for separator, called in ((";", "semicolons"), ("\t", "tabs")):
             if separator in header[0]:
@@ -298,8 +305,11 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
     except pd.errors.ParserError as exc:
         raise TableError(f"{name}: not a valid CSV file ({str(exc).splitlines()[0]})") from None
     # A column with neither a name nor a value (Excel's trailing ',,' on every line) carries nothing:
-    # kept, it would be written back under pandas' name for it, 'Unnamed: 3'
-    nameless = [c for c in df.columns if str(c).startswith("Unnamed: ") and not df[c].fillna("").str.strip().ne("").any()]
+    # kept, it would be written back under pandas' name for it ('Unnamed: 3', or ' .1' for a
+    # second ' '), so it is found by its place in the header
+    blank_names = {k for k, h in enumerate(header or []) if not h.strip()}
+    nameless = [c for k, c in enumerate(df.columns) if (k in blank_names or str(c).startswith("Unnamed: "))
+                and not df[c].fillna("").str.strip().ne("").any()]
     df = df.drop(columns=nameless)
     # Rows of blank cells (',,,,') that Excel leaves below a table are no neurons: dropped. One
     # between neurons stays a row (pandas keeps it too: a benchmark's row numbers, neuron_index,
@@ -540,7 +550,9 @@ def read_volume(path: str | os.PathLike, instead: str, names: bool = True) -> Ne
     what to give."""
     table = read_table(path, names=names, unique_names=False)
     if table.text is not None and "t" in table.text.columns:
-        times = table.text["t"].astype(str).str.strip().nunique()
+        text = table.text["t"].astype(str).str.strip()
+        value = pd.to_numeric(text, errors="coerce")  # '1' and '1.0' are one time point
+        times = pd.Series(np.where(value.notna(), value.astype(str), text)).nunique()
         if times > 1:
             raise TableError(f"{table.source}: a recording of {times} time points (a 't' column), taken whole it "
                              f"would mix them; {instead}")

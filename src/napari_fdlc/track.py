@@ -16,9 +16,11 @@ before it. With ``placement="geometry"`` (default) the warp is carried by a chea
 reference by the one-to-one assignment on distance, refit, a few rounds (ICP-like). The chain
 does not depend on the model's answers, so the model then sees a whole chunk of ``chunk``
 volumes as one batch, and the result does not depend on the chunk size. A volume where fewer
-than ``lost_fraction`` of the neurons pair up, or whose tracking-model match rate falls below
+than ``lost_fraction`` of the neurons pair up, whose pairs lie ``residual_ratio`` times further
+apart than the last volumes', or whose tracking-model match rate falls below
 ``research_ratio`` of the first volume's (a jump) gets the full search again and the
-chain restarts from it. Placed volumes go through the *tracking model* (``follow_with``:
+chain restarts from it (or, where the search fits worse, from its own warp turned about the
+optical axis). Placed volumes go through the *tracking model* (``follow_with``:
 the small model trained on exactly these placements, ``train.tracking_example``; the full
 searches use the identification model). Its log-probabilities (plus colour) are fused with a
 same-worm position likelihood (``position_sigma_um``: within one recording a neuron stays where
@@ -55,6 +57,11 @@ from .simulate import bend
 from .table import COORDS, NeuronTable, file_line, read_table, read_volume, repeated_names, with_unique_names
 
 UNTRACKED = -1
+# The residual test of a jump (TrackSettings.residual_ratio): the volumes its yardstick is the
+# median over, the fewest it needs (before, the floor stands in: a turn at t = 1 was never
+# caught), and a residual that is never a jump (a jitter-free recording's near-zero residuals
+# would otherwise make any change one).
+RESIDUAL_WINDOW, RESIDUAL_HISTORY, RESIDUAL_FLOOR_UM = 8, 3, 1.0
 
 
 @dataclass
@@ -64,6 +71,13 @@ class TrackSettings:
     chunk: int = 16  # volumes that go through the model as one batch
     lost_fraction: float = 0.5  # placement "geometry": full search again when fewer neurons than this pair up
     research_ratio: float = 0.5  # full search again when the match rate < this × the first volume's
+    # placement "geometry": full search again when the chain's median pair distance exceeds
+    # this × its median over the last RESIDUAL_WINDOW volumes (and RESIDUAL_FLOOR_UM). A 45° turn
+    # or a 10 µm shift pairs most neurons with a neighbour about 3 µm off, against 0.4-1 µm
+    # before; neither the pairs nor the match rate fell far enough (session 34: a 45° turn was
+    # tracked ~10 % right from there on). 2, not 3: at 3× motion a wrong placement lay only
+    # 2.5-3.3 times as far as the usual.
+    residual_ratio: float = 2.0
     use_colour: bool = True
     # Whether the model that follows takes the volumes' colours as an input too (the colour
     # likelihood is fused either way). Off: colours read from each volume of a recording vary
@@ -102,13 +116,14 @@ class TrackSettings:
             if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < least:
                 raise FdlcError(f"{name.replace('_', ' ')} must be a whole number of at least {least} (got {value!r})")
         # NaN or a negative width passed before: NaN was ignored, -5 µm changed the tracks silently
-        ranges = {"lost_fraction": (0, 1), "research_ratio": (0, 1), "warp_min_prob": (0, 1),
+        ranges = {"lost_fraction": (0, 1), "research_ratio": (0, 1), "warp_min_prob": (0, 1), "residual_ratio": (1, np.inf),
                   "warp_sigma_um": (0, np.inf), "warp_smoothness": (0, np.inf), "position_sigma_um": (0, np.inf)}
         for name, (low, high) in ranges.items():
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not low <= value <= high \
                     or not np.isfinite(value):
-                raise FdlcError(f"{name} must be a number from {low} to {high:g} (got {value!r})")
+                span = f"from {low} to {high:g}" if np.isfinite(high) else f"of at least {low}"
+                raise FdlcError(f"{name} must be a finite number {span} (got {value!r})")
         for name in ("gate_um", "no_match_weight"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not 0 < value < np.inf:
@@ -259,6 +274,7 @@ class _Reference:
         self.ids = ids  # track ID of each of its neurons
         self.warp: Warp | None = None  # the last volume's recording µm -> this reference's frame
         self.first_rate = None  # the following model's match rate on the first volume (placement "model")
+        self.residuals: list[float] = []  # the geometric chain's residual on the last volumes it placed
 
 
 def _match_rate(log_p: np.ndarray, matchable: bool = False) -> float:
@@ -369,22 +385,45 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
         return found
     rest = [i for i in range(len(chunk)) if found[i] is None]
     chain = ref.warp
+    # each chained volume's residual, read in volume order so that the chunk size (and chaining
+    # part of a chunk again) does not change the yardstick
+    earlier, residual = list(ref.residuals), {}
 
     def geometric_chain(indices: list[int], chain: Warp) -> list[Warp]:
-        """Each volume placed from the one before; one the chain loses (it pairs under
-        ``lost_fraction`` of the neurons it could pair: a jump) is searched in full and the
-        chain restarts from there."""
+        """Each volume placed from the one before. One the chain loses (it pairs under
+        ``lost_fraction`` of the neurons it could pair) or places far worse than the volumes
+        before (``residual_ratio``) has jumped: it is searched in full, and where that still
+        fits badly, placed again from the chain turned about the optical axis (a worm turning
+        on the slide); the chain goes on from whichever placement fits best."""
         warps = []
         for i in indices:
-            warp, choice = _geometric_step(ref, chunk[i], chain, s, pairs=True)
             pairable = max(1, min(len(chunk[i]), len(ref.xyz)))  # a smaller reference pairs fewer
-            paired = (choice >= 0).sum() / pairable
+
+            def placed_from(start: Warp) -> tuple[Warp, tuple[float, float]]:
+                warp, choice = _geometric_step(ref, chunk[i], start, s, pairs=True)
+                return warp, _fit(ref, chunk[i], warp, choice, pairable)
+
+            warp, fit = placed_from(chain)
+            recent = (earlier + [residual[j] for j in rest if j < i])[-RESIDUAL_WINDOW:]
+            # too short a history (the first chained volumes): the floor as the usual residual
+            usual = float(np.median(recent)) if len(recent) >= RESIDUAL_HISTORY else RESIDUAL_FLOOR_UM
+            limit = max(s.residual_ratio * usual, RESIDUAL_FLOOR_UM)
+
+            def jumped(fit) -> bool:
+                return fit[0] < s.lost_fraction or fit[1] > limit
+
             searched[i] = False
-            if paired < s.lost_fraction:
+            if jumped(fit):
                 out = _full_search(identifier, ref, [chunk[i]], s)[0]
-                again, choice2 = _geometric_step(ref, chunk[i], _finish(identifier, ref, chunk[i], out, s)["warp"], s, pairs=True)
-                if (choice2 >= 0).sum() / pairable > paired:
-                    warp, searched[i] = again, True
+                again, fit2 = placed_from(_finish(identifier, ref, chunk[i], out, s)["warp"])
+                if _fits_better(fit2, fit):
+                    warp, fit, searched[i] = again, fit2, True
+            if jumped(fit):
+                for start in _turned_starts(ref, chunk[i], chain, s):
+                    again, fit2 = placed_from(start)
+                    if _fits_better(fit2, fit):
+                        warp, fit, searched[i] = again, fit2, False
+            residual[i] = fit[1]
             chain = warp
             warps.append(warp)
         return warps
@@ -439,7 +478,44 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
         ref.warp = found[last]["warp"]
     else:
         ref.warp = chain
+    ref.residuals = (earlier + [residual[j] for j in rest if j in residual])[-RESIDUAL_WINDOW:]
     return found
+
+
+def _fit(ref: _Reference, volume: NeuronTable, warp: Warp, choice: np.ndarray, pairable: int) -> tuple[float, float]:
+    """How well the geometric chain placed a volume: the fraction of the neurons it could pair
+    that it paired, and their median distance (µm) to their partners after its warp (about the
+    segmentation jitter while the chain follows the worm)."""
+    paired = choice >= 0
+    if not paired.any():
+        return 0.0, float("inf")
+    distance = np.linalg.norm(warp(volume.xyz[paired]) - ref.xyz[choice[paired]], axis=1)
+    return paired.sum() / pairable, float(np.median(distance))
+
+
+def _fits_better(a: tuple[float, float], b: tuple[float, float], slack: float = 0.05) -> bool:
+    """Placement fit ``a`` beats ``b``: clearly more pairs, or about as many (a wrong placement
+    in a dense head pairs most neurons with some neighbour) lying nearer their partners."""
+    return a[0] > b[0] + slack or (a[0] >= b[0] - slack and a[1] < b[1])
+
+
+TURNS_DEG = tuple(range(0, 360, 30))
+
+
+def _turned_starts(ref: _Reference, volume: NeuronTable, chain: Warp, s: TrackSettings) -> list[Warp]:
+    """Warps that place the volume as the chain did after turning it about the optical axis
+    (z) through its centroid by each of ``TURNS_DEG`` and moving its centroid onto the
+    reference's (the turn 0: a sudden shift): starts for the chain after a jump, which keep
+    the bend the chain has followed so far (a full search starts from the straight atlas pose,
+    and found a bent worm's turn far less often)."""
+    centre, starts = volume.xyz.mean(0), []
+    for degrees in TURNS_DEG:
+        a = np.radians(degrees)
+        about_z = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        placed = chain((volume.xyz - centre) @ about_z.T + centre)
+        placed += ref.xyz.mean(0) - placed.mean(0)
+        starts.append(fit_warp(volume.xyz, placed, np.ones(len(volume)), s.warp_sigma_um, s.warp_smoothness))
+    return starts
 
 
 def _id_probs(found: dict, ref: _Reference, n_ids: int) -> np.ndarray:

@@ -41,6 +41,7 @@ from .table import NeuronTable
 
 
 TASKS = ("identify", "track")
+MAX_THREADS = 1024  # threads and workers a configuration may ask for
 
 
 @dataclass
@@ -114,6 +115,10 @@ class TrainConfig:
                 raise FdlcError(f"--{name.replace('_', '-')} must be at least 1 (got {value})")
         if self.workers < 0:
             raise FdlcError(f"--workers must be 0 or more (got {self.workers})")
+        for name in ("threads", "workers"):  # torch's own refusal of 2**31 was a traceback
+            value = getattr(self, name)
+            if value is not None and value > MAX_THREADS:
+                raise FdlcError(f"--{name} must be at most {MAX_THREADS} (got {value})")
         if not 0 <= self.seed < 2**32:
             raise FdlcError(f"--seed must be a whole number from 0 to 2**32 - 1 (got {self.seed})")
         if not 0 <= self.split_seed < 2**32:
@@ -214,8 +219,9 @@ class TrainConfig:
             raise FdlcError(f"{path}: not a readable JSON training configuration ({exc})") from None
         if isinstance(data, dict) and "train_config" in data:
             data = data["train_config"]
-            if isinstance(data, dict):  # when that run was told to stop, and where it ran, are not its recipe
-                data = {**data, "stop_at": None, "time_limit_min": None, "device": None}
+            if isinstance(data, dict):  # when that run was told to stop, where it ran, and whether it
+                # went on from another, are not its recipe
+                data = {**data, "stop_at": None, "time_limit_min": None, "device": None, "resume": False}
         if not isinstance(data, dict):
             raise FdlcError(f"{path}: a training configuration is a JSON object of settings")
         unknown = set(data) - set(cls.__dataclass_fields__)
@@ -768,6 +774,10 @@ def calibrate_checkpoint(cfg: TrainConfig, val_pairs: dict | None = None, log=pr
     from .model import model_files
 
     start = time.time()
+    if cfg.threads:  # --calibrate-only comes here without train(), which sets them
+        import torch
+
+        torch.set_num_threads(cfg.threads)
     corpus = load_corpus(cfg.corpus)
     if val_pairs is None:
         val_pairs = held_out(corpus, cfg)[2]

@@ -945,3 +945,101 @@ def test_a_set_voxel_size_moves_the_track_layers_of_the_recording_off_their_nucl
     ratio = np.asarray(images[0].scale[-3:]) / np.asarray((1.2, 0.36, 0.36))
     after = points.data[:, 1:] * np.asarray(points.scale[1:])
     assert np.allclose(after, before * ratio), "the tracked neurons no longer lie on their nuclei"
+
+
+def test_a_point_added_at_an_empty_frame_of_an_opened_sequence_is_saved_at_that_frame(make_napari_viewer, tmp_path):
+    """gui.md: a point added by hand to a layer over time 'takes the time of its frame'; tracking.md:
+    a time point left out for want of nuclei leaves its frame empty. Expected: a point added at the
+    empty frame 1 of a sequence with t = 0 and 2 is saved with t = 1. Actual: it is saved with
+    t = 0 (the reader's feature default for an integer t column is the first t, which the writer
+    trusts over the frame), so on reopening it joins the first volume."""
+    from napari_fdlc.track import join_by_time
+
+    worm = _worm()
+    path = tmp_path / "gap.csv"
+    write_table(join_by_time([worm, NeuronTable(worm.xyz + 1.0, worm.colours, worm.labels)], [0, 2]), path)
+    viewer = make_napari_viewer()
+    (layer,) = viewer.open(str(path), plugin="napari-fdlc")
+    assert sorted(set(layer.data[:, 0])) == [0, 2]
+    layer.add(np.array([[1.0, 20.0, 30.0, 40.0]]))
+
+    out = tmp_path / "edited.csv"
+    _save_selected(viewer, layer, out)
+    saved = pd.read_csv(out, keep_default_na=False)
+    assert float(saved["t"].iloc[-1]) == 1.0, f"the point added at frame 1 was saved at t={saved['t'].iloc[-1]}"
+
+
+def test_a_point_added_at_an_empty_frame_of_the_track_neurons_layer_is_saved_at_that_frame(make_napari_viewer, tmp_path):
+    """The Track widget's neurons layer of a recording whose frame 1 had no nuclei (frames 0 and 2).
+    Expected: a point added by hand at frame 1 is saved with t = 1 (gui.md: 'a point added by hand
+    takes the time of its frame'). Actual: t = 0, the layer's feature default (the first time),
+    which the writer takes over the frame."""
+    from napari_fdlc._napari.tracks import track_layers
+    from napari_fdlc.track import Sequence, TrackResult
+
+    n = 5
+    worm = _worm(n)
+    volumes = [NeuronTable(worm.xyz), NeuronTable(worm.xyz + 1.0)]
+    result = TrackResult([np.arange(n), np.arange(n)], [np.ones(n), np.full(n, 0.9)],
+                         [f"N{i}" for i in range(n)], [{}, {}])
+    viewer = make_napari_viewer()
+    for data, kwargs, kind in track_layers(result, Sequence(volumes, [0, 2]), "rec", frames=[0, 2]):
+        layer = getattr(viewer, f"add_{kind}")(data, **kwargs)
+    assert layer.name == "rec neurons"
+    layer.add(np.array([[1.0, 10.0, 20.0, 30.0]]))
+
+    out = tmp_path / "tracked.csv"
+    _save_selected(viewer, layer, out)
+    saved = pd.read_csv(out, keep_default_na=False)
+    assert float(saved["t"].iloc[-1]) == 1.0, f"the point added at frame 1 was saved at t={saved['t'].iloc[-1]}"
+
+
+def test_an_nwb_file_without_a_voxel_size_opens_with_its_annotated_neurons(tmp_path):
+    """gui.md: 'An NWB file's annotated neurons come with its image as a Points layer', and a file
+    that does not say its voxel size opens in pixels, the Voxel size row then setting 'the scale
+    of every layer ... an NWB file's neurons included'. Expected: an NWB file whose grid spacing is
+    in pixels opens as its images plus its neurons (in voxels, like the images). Actual: the
+    neurons are dropped with the warning 'the NWB file does not say the voxel size'
+    (_io._nwb_neurons -> read_nwb_neurons refuses it)."""
+    import h5py
+
+    from napari_fdlc._napari._io import get_stack_reader
+    from napari_fdlc.io.images import Stack
+    from napari_fdlc.io.nwb import write_nwb
+
+    rng = np.random.default_rng(0)
+    data = rng.integers(0, 1000, (4, 6, 20, 24)).astype(np.uint16)
+    path = tmp_path / "worm.nwb"
+    zyx = np.array([[1, 3, 4], [2, 10, 12], [4, 15, 20]])
+    voxel = (1.5, 0.4, 0.4)
+    neurons = NeuronTable(zyx[:, ::-1] * np.asarray(voxel)[::-1], {}, np.array(["AVAL", "AVAR", "RIAL"], dtype=object))
+    write_nwb(path, Stack(data, voxel, ["R", "G", "B", "W"], str(path), None), neurons)
+    with h5py.File(path, "r+") as f:
+        f["general/optophysiology/NeuroPALImVol/grid_spacing"].attrs["unit"] = "pixels"
+
+    layers = get_stack_reader(str(path))(str(path))
+    kinds = [kind for _, _, kind in layers]
+    assert kinds[:4] == ["image"] * 4 and layers[0][1]["scale"] == (1.0, 1.0, 1.0)  # opened in pixels
+    assert "points" in kinds, f"the NWB file's 3 annotated neurons were not opened (layers: {kinds})"
+
+
+def test_a_recording_whose_channels_are_not_named_is_offered_by_the_track_widget(make_napari_viewer, identifier, tmp_path):
+    """README / gui.md: a recording opened in napari is offered first under the Track widget's
+    *Neurons from* (`fdlc track` tracks such a file: without roles it segments the sum of the
+    channels). Expected: a two-channel recording whose file does not name its channels is
+    offered. Actual: it is not offered at all (TrackWidget._recordings keeps only layers with a
+    known role when the file has more than one channel), and set_recording says there is no
+    such recording in the viewer."""
+    from napari_fdlc._napari.tracks import SEQUENCE_FILE, TrackWidget
+    from napari_fdlc.io.images import StackSeries, write_tiff
+
+    data = np.random.default_rng(0).integers(0, 1000, (2, 2, 4, 16, 18)).astype(np.uint16)
+    path = tmp_path / "rec.ome.tif"
+    write_tiff(path, StackSeries(data, (1.5, 0.4, 0.4), [None, None], str(path), None), channel_names=["", ""])
+    viewer = make_napari_viewer()
+    layers = viewer.open(str(path), plugin="napari-fdlc")
+    assert len(layers) == 2 and all(layer.data.ndim == 4 for layer in layers)
+    widget = TrackWidget(viewer)
+    widget.identifier = identifier
+    offered = [widget.source_combo.itemText(i) for i in range(widget.source_combo.count())]
+    assert offered != [SEQUENCE_FILE], f"the recording open in the viewer is not offered: {offered}"

@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from napari_fdlc._napari._layers import META_KEY, is_image_layer, layer_xyz_um, stack_layers
 from napari_fdlc._napari._widget import NONE
 from napari_fdlc.table import NeuronTable, write_table
+import errno
 
 
 class _Slow:
@@ -922,3 +923,173 @@ def test_the_default_export_name_of_an_image_made_in_napari_is_a_plain_file_name
     for fmt in ("fdlc", "neuropal_id"):
         name = widget._default_export_path(fmt).name
         assert ":" not in name and name.startswith("my worm"), name
+
+
+def _dock(viewer, identifier, templates):
+    dock, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    return dock, widget
+
+
+def _named_rows(session):
+    return [int(i) for i in np.flatnonzero(np.asarray(session.auto_id) != "")]
+
+
+def test_decisions_made_after_the_session_moved_survive_docking_the_widget_again(
+        make_napari_viewer, sample_files, identifier, templates, tmp_path, monkeypatch):
+    """The image's folder stops taking the session (read-only remount): the session goes on in
+    the user's folder. Expected: a decision made after that is still there when the Auto-label
+    dock is closed and docked again (the layer is re-adopted). Actual: the neuron-ID layer's
+    metadata still names the old file beside the image, so the docked widget loads that stale
+    file: the later decision is gone from the review, and the next edit's autosave writes the
+    stale state over the user-folder file (the decision is lost on disk too)."""
+    from napari_fdlc.review import ReviewSession
+
+    stack_path = tmp_path / "worm.ome.tif"
+    shutil.copy(sample_files[0], stack_path)
+    viewer = make_napari_viewer()
+    viewer.open(str(stack_path), plugin="napari-fdlc")
+    dock, widget = _dock(viewer, identifier, templates)
+    assert widget.auto_label() is not None, widget.last_error
+    rows = _named_rows(widget.session)
+    widget.accept(rows[0])
+    save = ReviewSession.save
+
+    def read_only(self, path=None):
+        if path is not None and Path(path).parent == tmp_path:
+            raise OSError(errno.EROFS, "Read-only file system")
+        return save(self, path)
+
+    monkeypatch.setattr(ReviewSession, "save", read_only)
+    widget.accept(rows[1])  # autosaved to the user's folder from now on
+    assert widget.session.path.parent != tmp_path
+    viewer.window.remove_dock_widget(dock)
+    _, again = _dock(viewer, identifier, templates)
+    assert again.session is not None
+    assert again.session.status[rows[1]] == "accepted", "the decision made after the move is gone"
+
+
+def _add_worm_b_h(viewer, tmp_path):
+    """A second worm in the same viewer (the sample again, as if read from another file)."""
+    from napari_fdlc._napari._layers import stack_layers
+    from napari_fdlc.sample import load_sample
+
+    stack, _ = load_sample()
+    for data, kwargs, _ in stack_layers(stack, name="worm B", source_key=str(tmp_path / "worm B.ome.tif")):
+        viewer.add_image(data, **kwargs)
+
+
+def test_undo_after_deleting_every_point_survives_reviewing_another_worm(labelled_viewer, tmp_path):
+    """Select all the points of worm A's neuron-ID layer and delete them by mistake, review worm B,
+    come back to A and press Ctrl+Z. Expected (gui.md §5: the undo history is kept while napari
+    runs, also for a worm reviewed again after another): the neurons and the decision come back.
+    Actual: _adopt looks the session up with ``self._open_sessions.get(path) or
+    ReviewSession.load(path)``; a session with no neurons is falsy (``__len__`` is 0), so it is
+    read again from its file without its history: "nothing to undo", and every neuron and decision
+    of worm A is gone for good (the autosave already holds the empty session)."""
+    viewer, widget = labelled_viewer
+    layer_a = widget.auto_label()
+    session_a = widget.session
+    row = _named_rows(session_a)[0]
+    widget.accept(row)
+    n = len(session_a)
+    layer_a.selected_data = set(range(len(layer_a.data)))
+    layer_a.remove_selected()
+    assert len(session_a) == 0
+    _add_worm_b_h(viewer, tmp_path)
+    widget.set_channels(**{r: f"worm B [{r}]" for r in "RGBW"})
+    assert widget.auto_label() is not None, widget.last_error
+    viewer.layers.selection.active = layer_a
+    widget._on_key(layer_a, lambda: None)  # a review key pressed on worm A's layer: A is reviewed again
+    assert widget.layer is layer_a
+    assert widget._gui(widget.undo) is not None, "nothing to undo"
+    assert len(widget.session) == n and widget.session.status[row] == "accepted"
+
+
+def test_undo_history_survives_closing_and_docking_the_widget_again(
+        make_napari_viewer, sample_files, identifier, templates):
+    """Accept a name, close the Auto-label dock (e.g. for room), open it again from the Plugins
+    menu and press Undo. Expected (gui.md §5: 'The undo history is kept while napari runs'): the
+    accept is undone. Actual: the history lives in the closed widget (``_open_sessions``); the new
+    widget reads the session from its file, without history: "nothing to undo"."""
+    viewer = make_napari_viewer()
+    viewer.open_sample("napari-fdlc", "neuropal")
+    dock, widget = _dock(viewer, identifier, templates)
+    assert widget.auto_label() is not None, widget.last_error
+    row = _named_rows(widget.session)[0]
+    widget.accept(row)
+    viewer.window.remove_dock_widget(dock)
+    _, again = _dock(viewer, identifier, templates)
+    assert again.session is not None and again.session.status[row] == "accepted"
+    assert again._gui(again.undo) is not None, "nothing to undo"
+    assert again.session.status[row] == "auto"
+
+
+def test_a_restored_session_threshold_is_the_one_the_slider_shows(labelled_viewer):
+    """A session saved with threshold 0.555 (a script's ReviewSession, or an older version) is
+    restored at the slider's step, 0.56: the widget's threshold (slider, label, ``w.threshold``)
+    is the one the session applies. _link put round(0.555 * 100) = 56 on the slider while the
+    session kept 0.555, so names at 0.555-0.56 were still shown and exported, and the next
+    Auto-label on a new detection silently took 0.56."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    s = widget.session
+    s.threshold = 0.555
+    s.save()
+    viewer.layers.remove(layer)
+    image = next(lyr for lyr in viewer.layers if lyr.name == "NeuroPAL sample [W]")
+    assert widget._restore_for_image(image) is not None
+    assert widget.session.threshold == 0.56
+    assert widget.threshold == widget.session.threshold, (widget.threshold, widget.threshold_label.text())
+
+
+def _user_ids_h(path):
+    try:
+        return json.loads(path.read_text())["neurons"]["user_id"]
+    except (ValueError, KeyError, TypeError, OSError):
+        return []
+
+
+def test_a_decision_not_carried_over_is_kept_when_the_session_went_to_the_user_folder(
+        make_napari_viewer, sample_files, identifier, templates, tmp_path, monkeypatch):
+    """The image's disk fills up: the session goes on in the user's folder, where the user names
+    an isolated neuron AVAL. Auto-label again on a new detection that misses that neuron.
+    Expected (gui.md §5: a session file is never written over while it holds decisions the new
+    session lacks): the file holding AVAL is set aside. Actual: _new_session sets aside
+    ``session_file_for(key)`` — the stale file beside the image, which never held AVAL — and the
+    new session's autosave (beside fails again) falls back onto the user-folder file and writes
+    over it: AVAL is in no file at all, while napari says the earlier session is kept."""
+    from scipy.spatial import cKDTree
+
+    from napari_fdlc.review import ReviewSession
+
+    folder = tmp_path / "images"
+    folder.mkdir()
+    stack_path = folder / "worm.ome.tif"
+    shutil.copy(sample_files[0], stack_path)
+    viewer = make_napari_viewer()
+    viewer.open(str(stack_path), plugin="napari-fdlc")
+    _, widget = _dock(viewer, identifier, templates)
+    assert widget.auto_label() is not None, widget.last_error
+    save = ReviewSession.save
+
+    def disk_full(self, path=None):
+        if path is not None and Path(path).parent == folder:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return save(self, path)
+
+    monkeypatch.setattr(ReviewSession, "save", disk_full)
+    xyz = widget.session.table.xyz
+    d, _ = cKDTree(xyz).query(xyz, k=2)
+    row = next(i for i in np.flatnonzero(d[:, 1] > 3.0) if widget.session.auto_id[i])
+    widget.assign(int(row), "AVAL")
+    assert widget.session.path.parent != folder and "AVAL" in _user_ids_h(widget.session.path)
+    layer = widget.layer
+    keep = [i for i in range(len(layer.data)) if i != row]
+    viewer.add_points(np.asarray(layer.data)[keep], scale=layer.scale, name="new detection")
+    widget.set_neurons("new detection")
+    assert widget.auto_label() is not None, widget.last_error
+    assert "AVAL" not in widget.session.user_id
+    files = [p for p in (*folder.iterdir(), *widget.session.path.parent.iterdir()) if p.suffix == ".json"]
+    assert any("AVAL" in _user_ids_h(p) for p in files), [p.name for p in files]

@@ -15,6 +15,7 @@ from napari_fdlc.io import images
 from napari_fdlc.io.images import Stack, StackSeries, read_nd2, read_series, read_stack, role_from_name, write_tiff
 from napari_fdlc.io.nwb import _text, read_nwb_neurons, write_nwb
 from napari_fdlc.table import NeuronTable
+from napari_fdlc.io.images import ImageError, VoxelSizeUnknown
 
 NAMES = ["mNeptune2.5", "CyOFP1.5", "mTagBFP2", "TagRFP-T"]
 
@@ -636,3 +637,157 @@ def test_nd2_with_uncalibrated_pixels_and_a_z_step_asks_for_the_voxel_size(tmp_p
     with pytest.raises(images.ImageError) as exc:
         read_nd2(tmp_path / "w.nd2", opener=lambda p: fake)
     one_line_error(exc, "voxel size")
+
+
+NAMES_h = ["mNeptune2.5", "CyOFP1.5", "mTagBFP2", "TagRFP-T"]
+
+
+def _stack():
+    data = np.random.default_rng(0).integers(0, 4000, (4, 5, 16, 24)).astype(np.uint16)
+    return Stack(data, (1.5, 0.25, 0.3), ["R", "G", "B", "W"], channel_names=NAMES_h)
+
+
+def _one_line(exc) -> str:
+    message = str(exc)
+    assert message and "\n" not in message, message
+    return message
+
+
+def test_nwb_without_a_neuropal_image_does_not_read_a_calcium_series_as_the_volume(tmp_path):
+    """Expected (docs/image_formats.md: the image is acquisition['NeuroPALImageRaw'], "else any
+    NeuroPAL-named 3/4-D volume in acquisition or processing"): an NWB file that holds only a
+    GCaMP activity recording (a TwoPhotonSeries, data t, x, y, z) has no NeuroPAL image and is
+    refused in one line. Actual: nwb._find_image falls back to the first 3/4-D series of any
+    name, so the recording is read silently as a NeuroPAL volume x, y, z, c: 10 time points
+    become X, the z planes become 5 'channels', and the voxel size is attached to the wrong
+    axes."""
+    from pynwb import NWBHDF5IO, NWBFile
+    from pynwb.ophys import OpticalChannel, TwoPhotonSeries
+
+    nwb = NWBFile(session_description="t", identifier="t", session_start_time=datetime.now(timezone.utc))
+    device = nwb.create_device(name="scope")
+    plane = nwb.create_imaging_plane(
+        name="CalciumImVol", optical_channel=[OpticalChannel(name="GCaMP", description="", emission_lambda=np.nan)],
+        description="", device=device, excitation_lambda=np.nan, indicator="GCaMP6s", location="head",
+        grid_spacing=[0.3, 0.3, 1.5], grid_spacing_unit="micrometers")
+    movie = np.random.default_rng(0).integers(0, 100, (10, 16, 12, 5)).astype(np.uint16)  # t, x, y, z
+    nwb.add_acquisition(TwoPhotonSeries(name="CalciumImageSeries", data=movie, imaging_plane=plane, rate=2.0, unit="n/a"))
+    path = tmp_path / "activity_only.nwb"
+    with NWBHDF5IO(str(path), "w") as io:
+        io.write(nwb)
+    with pytest.raises(ImageError) as exc:
+        got = read_stack(path)
+        pytest.fail(f"a GCaMP time series was read as a NeuroPAL volume: C, Z, Y, X = {got.data.shape}")
+    _one_line(exc.value)
+
+
+@pytest.mark.parametrize("spacing", [[0.3, 0.25, np.nan], [0.3, 0.25, 0.0]], ids=["nan-z", "zero-z"])
+def test_nwb_grid_spacing_that_is_no_size_asks_for_the_voxel_size(tmp_path, spacing):
+    """Expected: a grid_spacing whose z is NaN or 0 (the writer did not know it) is a missing
+    voxel size, as a TIFF's PhysicalSizeZ="0" is: VoxelSizeUnknown, whose message says to give
+    --voxel-size (and napari then opens the stack in pixels, _napari/_io.py). Actual: a plain
+    ImageError "voxel size must be three positive numbers Z Y X in µm (got [nan, 0.25, 0.3])"
+    that blames a voxel size the user never gave and does not say --voxel-size; napari cannot
+    open the file at all. Cause: nwb._grid_spacing_um passes non-positive / NaN values through,
+    and finish_stack's _check_voxel_size refuses them instead of treating them as unknown."""
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, _stack())
+    with h5py.File(path, "a") as f:
+        f["general/optophysiology/NeuroPALImVol/grid_spacing"][...] = spacing
+    with pytest.raises(ImageError) as exc:
+        read_stack(path)
+    message = _one_line(exc.value)
+    assert isinstance(exc.value, VoxelSizeUnknown), message
+    assert "--voxel-size" in message, message
+
+
+@pytest.mark.parametrize("unit, values", [("nanometres", [300.0, 250.0, 1500.0]), ("millimetres", [3e-4, 2.5e-4, 1.5e-3]),
+                                          ("metres", [3e-7, 2.5e-7, 1.5e-6])])
+def test_nwb_grid_spacing_in_british_spelled_units_is_read(tmp_path, unit, values):
+    """Expected: grid_spacing_unit is free text in NWB; "micrometres" is understood
+    (images._UNIT_TO_UM), so "nanometres", "millimetres" and "metres" are too and the voxel size
+    reads as (1.5, 0.25, 0.3) µm. Actual: VoxelSizeUnknown "the file does not say the voxel
+    size": _UNIT_TO_UM lists only the -er spellings of every unit but the micrometre (and
+    nwb._grid_spacing_um's metre check knows only 'm', 'meter', 'meters')."""
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, _stack())
+    with h5py.File(path, "a") as f:
+        spacing = f["general/optophysiology/NeuroPALImVol/grid_spacing"]
+        spacing[...] = values
+        spacing.attrs["unit"] = unit
+    assert read_stack(path).voxel_size_zyx == pytest.approx((1.5, 0.25, 0.3))
+
+
+class _FakeND2:
+    """The part of nd2.ND2File that read_nd2 uses."""
+
+    def __init__(self, data, sizes, voxel, names):
+        self._data, self.sizes, self.dtype, self._voxel = data, sizes, data.dtype, voxel
+        self.metadata = SimpleNamespace(channels=[SimpleNamespace(channel=SimpleNamespace(name=n)) for n in names])
+
+    def voxel_size(self, channel=0):
+        x, y, z = self._voxel
+        return SimpleNamespace(x=x, y=y, z=z)
+
+    def asarray(self):
+        return self._data
+
+    def to_dask(self):
+        import dask.array as da
+
+        return da.from_array(self._data)
+
+    def close(self):
+        pass
+
+
+@pytest.mark.parametrize("z", [0.0, float("nan")], ids=["zero", "nan"])
+def test_nd2_without_a_z_step_asks_for_the_voxel_size(tmp_path, z):
+    """Expected: an ND2 whose z step is 0 or NaN (no calibrated Z loop) is a missing voxel size:
+    VoxelSizeUnknown with "--voxel-size" in its message, as for uncalibrated x/y. Actual: a plain
+    ImageError "voxel size must be three positive numbers Z Y X in µm (got [0.0, 0.3, 0.3])",
+    which does not say what to do and makes napari refuse the file instead of opening it in
+    pixels. Cause: read_nd2 passes the reported z through; only x = y = 1 is taken as unknown."""
+    data = np.ones((5, 2, 16, 16), np.uint16)
+    fake = _FakeND2(data, {"Z": 5, "C": 2, "Y": 16, "X": 16}, (0.3, 0.3, z), ("TagRFP-T", "mNeptune2.5"))
+    with pytest.raises(ImageError) as exc:
+        read_nd2(tmp_path / "w.nd2", opener=lambda p: fake)
+    message = _one_line(exc.value)
+    assert isinstance(exc.value, VoxelSizeUnknown), message
+    assert "--voxel-size" in message, message
+
+
+def test_a_movie_without_z_planes_is_not_sent_to_fdlc_segment(tmp_path):
+    """Expected: each refusal says what to do, and doing it helps. An ImageJ file of 5 planes
+    marked as time points (T, Y, X: a z-stack saved with frames for slices, a common Fiji
+    slip, or a 2D movie) is refused by read_stack with advice that works (e.g. --axes ZYX, or
+    "no Z planes"). Actual: read_stack says "a recording of 5 time points; fdlc segment and
+    fdlc track read it", and fdlc segment (read_series) then refuses the same file as "a 2D
+    image (axes YX)". Cause: finish_stack raises the time-series message before it checks
+    that the volume left after T has a Z axis."""
+    path = tmp_path / "frames.tif"
+    tifffile.imwrite(path, np.ones((5, 16, 16), np.uint16), imagej=True, resolution=(4.0, 4.0),
+                     metadata={"axes": "TYX", "unit": "micron"})
+    with pytest.raises(ImageError) as as_recording:
+        read_series(path, voxel_size=(1.0, 0.25, 0.25))  # what fdlc segment / fdlc track read
+    assert "2D" in str(as_recording.value)
+    with pytest.raises(ImageError) as exc:
+        read_stack(path, voxel_size=(1.0, 0.25, 0.25))
+    message = _one_line(exc.value)
+    assert "fdlc segment" not in message, message
+
+
+def test_a_jpeg2000_image_is_refused_as_an_unsupported_format(tmp_path):
+    """Expected (docs/image_formats.md: unknown formats are refused with one line saying what to
+    do): a JPEG 2000 image (photo.jp2) is "not a supported image file; use TIFF, OME-TIFF, NWB
+    (.nwb) or ND2 (.nd2)", and is_image_file says False. Actual: images._sniff takes the JPEG 2000
+    signature (00 00 00 0C, shared with legacy ND2) as ND2 whatever the suffix, so
+    is_image_file('photo.jp2') is True and the error is "the ND2 file cannot be read (Not a
+    legacy ND2 file)", about a format the user never had."""
+    path = tmp_path / "photo.jp2"
+    path.write_bytes(b"\x00\x00\x00\x0cjP  \r\n\x87\n" + bytes(200))
+    with pytest.raises(ImageError) as exc:
+        read_stack(path)
+    message = _one_line(exc.value)
+    assert "ND2 file" not in message and "TIFF" in message, message
+    assert not images.is_image_file(path)

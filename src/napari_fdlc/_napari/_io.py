@@ -131,7 +131,8 @@ def _nwb_neurons(path: str, stack):
     from ..io.nwb import read_nwb_neurons
 
     try:
-        table = read_nwb_neurons(path, colours=False)
+        # on the image's voxels, whatever voxel size it was given (a stand-in, or one set in napari)
+        table = read_nwb_neurons(path, colours=False, voxel_size=stack.voxel_size_zyx)
     except ImageError as exc:
         if "no neuron segmentation" in str(exc):
             return None
@@ -254,13 +255,17 @@ def _per_axis(values, dims: int, missing: float) -> np.ndarray:
 
 
 def _times_of_frames(frames: np.ndarray, t: pd.Series) -> list:
-    """Each point's time: the one read for the points of its frame (a point added by hand holds
-    none, or napari's copy of the last point's); else its frame."""
+    """Each point's time: the one read for the points of its frame; else its frame. A point
+    added by hand holds none, or a copy of another frame's time (napari's copy of the last
+    point's; a whole-number column's first time), which is not its frame's."""
     known: dict[float, object] = {}
+    claimed: set[float] = set()
     numeric = pd.to_numeric(t, errors="coerce")
     for frame, value, raw in zip(frames, numeric, t):
-        if np.isfinite(value):
-            known.setdefault(frame, raw)  # the points read come first; those added by hand after them
+        # the points read come first, so each frame's time is claimed before a copy of it
+        if np.isfinite(value) and frame not in known and value not in claimed:
+            known[frame] = raw
+            claimed.add(value)
     return [known.get(frame, int(frame) if float(frame).is_integer() else frame) for frame in frames]
 
 

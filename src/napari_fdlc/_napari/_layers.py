@@ -130,7 +130,7 @@ def stack_from_layers(images: dict, source: str, recording: bool = False):
     with axes before z, y, x gives its first volume. With ``recording``, a
     :class:`~napari_fdlc.io.images.StackSeries` of t, z, y, x layers, lazy (dask): its volumes
     are read one at a time. Lazy layers stay lazy."""
-    from ..io.images import Stack, StackSeries
+    from ..io.images import ROLES, Stack, StackSeries
 
     if not images:
         raise FdlcError("no image chosen: pick the image layer of at least one channel (W to detect nuclei)")
@@ -167,7 +167,8 @@ def stack_from_layers(images: dict, source: str, recording: bool = False):
         data = da.stack([da.from_array(a, chunks=chunks) if isinstance(a, np.ndarray) else da.asarray(a)
                          for a in arrays], axis=axes - 3)
     kind = StackSeries if recording else Stack
-    return kind(data, tuple(float(v) for v in layers[0].scale[-3:]), list(images.keys()), source=source,
+    roles = [role if role in ROLES else None for role in images]  # {"channel 0": ...}: no role
+    return kind(data, tuple(float(v) for v in layers[0].scale[-3:]), roles, source=source,
                 channel_names=[layer.name for layer in layers])
 
 

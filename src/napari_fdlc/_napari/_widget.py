@@ -25,6 +25,7 @@ import re
 import sys
 import threading
 import traceback
+import weakref
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
@@ -64,6 +65,7 @@ from ..review import (
     ReviewSession,
     carry_decisions,
     decisions_from_frame,
+    find_session,
     load_preferences,
     save_preferences,
     session_file_for,
@@ -95,6 +97,18 @@ if TYPE_CHECKING:
     import napari
 
 ROLES = ("R", "G", "B", "W")
+# Every session shown in a viewer since napari started, by file path, for all the Auto-label
+# widgets docked in it: a session taken up again keeps its undo history, also after the dock
+# was closed and opened again (gui.md).
+_SESSIONS_SHOWN: dict[int, dict[str, ReviewSession]] = {}
+
+
+def _sessions_shown_in(viewer) -> dict[str, ReviewSession]:
+    key = id(viewer)
+    if key not in _SESSIONS_SHOWN:
+        _SESSIONS_SHOWN[key] = {}
+        weakref.finalize(viewer, _SESSIONS_SHOWN.pop, key, None)  # a viewer closed takes its sessions along
+    return _SESSIONS_SHOWN[key]
 SEGMENT = "Detect nuclei in the image"
 BUILTIN = "Built-in reference panel"
 SCRIPTED = "Templates given by script"
@@ -139,7 +153,7 @@ class AutoLabelWidget(QWidget):
         self.viewer = getattr(napari_viewer, "__wrapped__", napari_viewer)
         self.session: ReviewSession | None = None
         self.layer = None  # the neuron-ID Points layer
-        self._open_sessions: dict[str, ReviewSession] = {}  # path -> every session shown since napari started
+        self._open_sessions = _sessions_shown_in(self.viewer)
         self.identifier = None  # None: the shipped model (napari_fdlc.identify.default_identifier)
         self.last_error: str | None = None
         self._script_templates: list[NeuronTable] | None = None
@@ -292,7 +306,7 @@ class AutoLabelWidget(QWidget):
         self.threshold_slider.setRange(0, 100)
         self.threshold_slider.setValue(int(round(DEFAULT_THRESHOLD * 100)))
         self.threshold_slider.valueChanged.connect(self._on_slider)
-        self.threshold_slider.sliderReleased.connect(lambda: self.session.autosave() if self.session else None)
+        self.threshold_slider.sliderReleased.connect(lambda: self.session.autosave() if self.session is not None else None)
         self.threshold_label = QLabel(f"{DEFAULT_THRESHOLD:.2f}")
         self.coverage_label = QLabel("")
         self.coverage_label.setWordWrap(True)
@@ -1010,11 +1024,17 @@ class AutoLabelWidget(QWidget):
         key = image_key or f"layer:{source_name}"
         path = session_file_for(key)
         if lost or unreadable or missing:
-            try:
-                kept = set_aside(path)
-            except FdlcError as exc:  # e.g. a read-only folder: the old file stays as it is
-                self._notify_warning(str(exc))
-                kept, path = None, user_session_file(key)
+            # the file the decisions live in (the user's folder, after a save beside the image
+            # failed) and the one the new session will write
+            kept = None
+            for old in dict.fromkeys(p for p in (find_session(key), path) if p is not None):
+                try:
+                    aside = set_aside(old)
+                    kept = kept or aside
+                except FdlcError as exc:  # e.g. a read-only folder: the old file stays as it is
+                    self._notify_warning(str(exc))
+                    if old == path:
+                        path = user_session_file(key)
             where = f"; the earlier session is kept in {kept}" if kept else ""
             if unreadable:
                 self._notify_warning(f"the saved session of this image could not be read ({unreadable}){where}")
@@ -1057,7 +1077,9 @@ class AutoLabelWidget(QWidget):
             return
         # A session reviewed before in this napari is taken up with its undo history (it autosaved
         # every edit, so the file says the same); another is read from its file.
-        session = self._open_sessions.get(str(path)) or ReviewSession.load(path)
+        session = self._open_sessions.get(str(path))
+        if session is None:  # (one left with no neurons is still the one with the undo history)
+            session = ReviewSession.load(path)
         self._link(session, layer)
         self._status(f"restored {Path(path).name}")
 
@@ -1068,6 +1090,8 @@ class AutoLabelWidget(QWidget):
         if self.layer is not None:
             self._disconnect_layer(self.layer)
         self.session = session
+        # the slider's step: a saved 0.555 applied while the slider showed 0.56 (the next run used 0.56)
+        session.set_threshold(round(session.threshold, 2), save=False)
         if session.path is not None:
             self._open_sessions[str(session.path)] = session
         meta = {"session": str(session.path) if session.path else None, "image": session.image}
@@ -1116,6 +1140,13 @@ class AutoLabelWidget(QWidget):
             self._notify_warning(self.session.last_save_error or "the session could not be saved")
             return
         if kind == "save_moved":
+            # the layer and the sessions shown name the file it lives in now: a widget docked
+            # again, or Duplicate Layer, read the old one (and lost the decisions made since)
+            self._open_sessions[str(self.session.path)] = self.session
+            if self.layer is not None:
+                meta = (self.layer.metadata or {}).get(META_KEY) or {}
+                with self._guarded():
+                    self.layer.metadata = {**(self.layer.metadata or {}), META_KEY: {**meta, "session": str(self.session.path)}}
             self._notify_warning(f"the image's folder is no longer writable; the session is saved to {self.session.path}")
             return
         if kind == "current":
@@ -1578,8 +1609,6 @@ def camera(viewer):
 def _saved_session(image_key: str) -> tuple[ReviewSession | None, str | None]:
     """The saved session of ``image_key`` (None when there is none), and why it could not be
     read when it could not."""
-    from ..review import find_session
-
     path = find_session(image_key)
     if path is None:
         return None, None

@@ -242,7 +242,7 @@ class TrackWidget(QWidget):
     def _recordings(self) -> dict[str, tuple[str, dict[str, object]]]:
         """The recordings in the viewer: {name shown: (image key, {role: layer})}, from t, z, y, x image
         layers grouped by the file they came from (a layer of its own without a known role is
-        taken as W, the channel nuclei are found in)."""
+        taken as W, the channel nuclei are found in; several without one, as channels of no role)."""
         groups: dict[str, list] = {}
         for layer in self.viewer.layers:
             if is_image_layer(layer) and layer.data.ndim == 4:
@@ -254,6 +254,8 @@ class TrackWidget(QWidget):
                 role = layer_role(layer, RECORDING_ROLES) or ("W" if len(layers) == 1 else None)
                 if role is not None and role not in channels:
                     channels[role] = layer
+            if not channels:  # a file that names none: nuclei found in their sum, as fdlc track does
+                channels = {f"channel {k}": layer for k, layer in enumerate(layers)}
             if channels:
                 meta = (layers[0].metadata or {}).get(META_KEY) or {}
                 name = meta.get("stack_name") or (_short_name(key) if len(layers) > 1 else layers[0].name)

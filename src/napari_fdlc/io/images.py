@@ -47,9 +47,10 @@ _TIFF_SUFFIXES = (".tif", ".tiff", ".btf", ".tf8", ".ome.tif", ".ome.tiff", ".om
 _UNIT_TO_UM = {
     "um": 1.0, "µm": 1.0, "μm": 1.0, "micron": 1.0, "microns": 1.0, "micrometer": 1.0,
     "micrometers": 1.0, "micrometre": 1.0, "micrometres": 1.0, "\\u00b5m": 1.0,
-    "nm": 1e-3, "nanometer": 1e-3, "nanometers": 1e-3,
-    "mm": 1e3, "millimeter": 1e3, "millimeters": 1e3,
-    "cm": 1e4, "m": 1e6, "meter": 1e6, "meters": 1e6,
+    "nm": 1e-3, "nanometer": 1e-3, "nanometers": 1e-3, "nanometre": 1e-3, "nanometres": 1e-3,
+    "mm": 1e3, "millimeter": 1e3, "millimeters": 1e3, "millimetre": 1e3, "millimetres": 1e3,
+    "cm": 1e4, "centimeter": 1e4, "centimeters": 1e4, "centimetre": 1e4, "centimetres": 1e4,
+    "m": 1e6, "meter": 1e6, "meters": 1e6, "metre": 1e6, "metres": 1e6,
     "å": 1e-4, "angstrom": 1e-4, "pm": 1e-6,  # OME allows them (compared in lower case)
 }
 
@@ -310,9 +311,11 @@ def _sniff(path: Path) -> str | None:
         return "tiff"
     if head == b"\x89HDF\r\n\x1a\n":
         return "nwb"
-    if head[:4] in (b"\xda\xce\xbe\x0a", b"\x00\x00\x00\x0c"):  # ND2 chunk magic / JPEG2000 legacy ND2
-        return "nd2"
     name = path.name.lower()
+    if head[:4] == b"\xda\xce\xbe\x0a":  # ND2 chunk magic
+        return "nd2"
+    if head[:4] == b"\x00\x00\x00\x0c":  # a legacy ND2 is a JPEG 2000 file: only one named .nd2 is one
+        return "nd2" if name.endswith(".nd2") else None
     if name.endswith(_TIFF_SUFFIXES):
         return "tiff"
     if name.endswith((".nwb", ".h5", ".hdf5")):
@@ -358,6 +361,9 @@ def finish_stack(
         if "C" in axes:
             raise ImageError(f"{source}: both channels and RGB samples (axes {axes}); export one channel axis")
         axes = axes.replace("S", "C")
+    if "T" in axes and "Z" not in axes and set(axes) <= set("TCYX"):  # before the advice to track it
+        raise ImageError(f"{source}: 2D images over time (axes {axes}), no Z planes; if its planes are z planes "
+                         f"saved as time points, give --axes {axes.replace('T', 'Z')}")
     if "T" in axes:
         n = data.shape[axes.index("T")]
         if not time:
@@ -390,6 +396,8 @@ def finish_stack(
     if user_voxel_size is not None:
         voxel = _check_voxel_size(user_voxel_size, source)
     else:
+        if voxel_size_zyx is not None:  # a size of 0 or NaN in a file says none (its writer did not know it)
+            voxel_size_zyx = [None if v is None or not 0 < float(v) < np.inf else float(v) for v in voxel_size_zyx]
         if voxel_size_zyx is None or any(v is None for v in voxel_size_zyx):
             missing = "" if voxel_size_zyx is None else " ".join(
                 a for a, v in zip("ZYX", voxel_size_zyx) if v is None

@@ -91,7 +91,7 @@ def _find_image(nwb):
     for name, obj in with_data:
         if "neuropal" in name.lower():
             return obj
-    return with_data[0][1] if with_data else None
+    return None  # not any volume: a calcium recording (t, x, y, z) read as one was nonsense
 
 
 def _find_volume(nwb, image):
@@ -140,9 +140,10 @@ def _grid_spacing_um(volume) -> list[float | None] | None:
     unit = getattr(volume, "grid_spacing_unit", None)
     # NWB's default grid unit is "meters", but NeuroPAL writers store µm values under it; trust the
     # magnitude: sub-millimetre numbers labelled metres are converted, others are taken as µm.
-    if unit and str(unit).lower() in ("m", "meter", "meters") and gs.max() < 1e-3:
+    metres = unit and _to_um(1.0, unit) == 1e6
+    if metres and gs.max() < 1e-3:
         factor = 1e6
-    elif unit and str(unit).lower() not in ("m", "meter", "meters"):
+    elif unit and not metres:
         factor = _to_um(1.0, unit)
         if factor is None:  # 'pixels', or a unit we cannot convert: unknown, asked for (not taken as µm)
             return None
@@ -245,7 +246,8 @@ def read_nwb(
     with _open(path) as nwb:
         image = _find_image(nwb)
         if image is None:
-            raise ImageError(f"{source}: no NeuroPAL image in the NWB file (looked for acquisition['{IMAGE_NAME}'])")
+            raise ImageError(f"{source}: no NeuroPAL image in the NWB file (looked for acquisition['{IMAGE_NAME}'], "
+                             "else a 3D or 4D volume with NeuroPAL in its name)")
         dset = image.data
         if dset.ndim == 3:  # x, y, z without a channel axis
             axes = "XYZ"
@@ -301,11 +303,12 @@ def _mask_centre(entry) -> np.ndarray:
     return arr[:, :3].mean(axis=0)
 
 
-def read_nwb_neurons(path: str | os.PathLike, colours: bool = True) -> NeuronTable:
+def read_nwb_neurons(path: str | os.PathLike, colours: bool = True,
+                     voxel_size: Sequence[float] | None = None) -> NeuronTable:
     """The annotated neurons of a NeuroPAL NWB file as a :class:`NeuronTable` (µm, names).
 
     Voxel-mask coordinates are taken as 0-based voxel indices (x, y, z) and scaled by the grid
-    spacing. With ``colours`` the R, G, B, W intensities are read out of the image at each neuron
+    spacing, or by ``voxel_size`` (z, y, x µm) when given: the size the image is shown at. With ``colours`` the R, G, B, W intensities are read out of the image at each neuron
     (per-volume z-scores, as :func:`napari_fdlc.segment.measure_colours` does).
     """
     source = str(path)
@@ -318,9 +321,12 @@ def read_nwb_neurons(path: str | os.PathLike, colours: bool = True) -> NeuronTab
             )
         image = _find_image(nwb)
         volume = getattr(ps, "imaging_plane", None)
-        voxel = _grid_spacing_um(volume) if volume is not None else None
-        if voxel is None:
-            voxel = _grid_spacing_um(_find_volume(nwb, image))
+        if voxel_size is not None:
+            voxel = list(voxel_size)
+        else:
+            voxel = _grid_spacing_um(volume) if volume is not None else None
+            if voxel is None:
+                voxel = _grid_spacing_um(_find_volume(nwb, image))
         if voxel is None or any(v is None for v in voxel):
             raise ImageError(f"{source}: the NWB file does not say the voxel size (grid_spacing of '{VOLUME_NAME}')")
         n = len(ps)
