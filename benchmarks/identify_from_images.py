@@ -94,7 +94,9 @@ def main(argv=None) -> int:
             # from the image: each true neuron gets the name given to its detection (if any)
             result = name(found, template, source)
             d = cdist(truth.xyz, found.xyz)
-            r, c = linear_sum_assignment(d)
+            # the most pairs within 1.5 µm, one-to-one (on the raw distances the least total
+            # distance could give up a pair within reach for a nearer one: score_detections' cut-off)
+            r, c = linear_sum_assignment(np.where(d < 1.5, d, 1e6))
             given = np.full(len(truth), "", dtype=object)
             ok = d[r, c] < 1.5
             given[r[ok]] = np.asarray(result.auto_id, dtype=object)[c[ok]]

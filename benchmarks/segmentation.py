@@ -86,7 +86,7 @@ def run_condition(worms, noise: float, keep: float, scale: float, voxel, diamete
         "precision": precision,
         "recall": recall,
         "f1": 2 * precision * recall / (precision + recall) if precision + recall else 0.0,
-        "error": float(np.median([r["median_error_um"] for r in rows])),
+        "error": float(np.nanmedian([r["median_error_um"] for r in rows])),  # a worm with no match has none
         "seconds": float(np.mean([r["seconds"] for r in rows])),
         "rho": float(np.nanmean([r["rho"] for r in rows])),
     }

@@ -98,6 +98,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cpd-repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
+    if min(args.repeats, args.batch) < 1:
+        ap.error("--repeats and --batch must be at least 1")
+    load = os.getloadavg()  # before the run: what other jobs put on the machine, not this one's own
 
     import torch
 
@@ -233,7 +236,6 @@ def main(argv=None) -> int:
     print(f"  cpu CPD tracking: {wall:.1f} ms/volume", file=sys.stderr, flush=True)
 
     cpd_ms, cpd_track_ms = rows[cpd_name]["cpu_ms"], rows[cpd_track_name]["cpu_ms"]
-    load = os.getloadavg()
     print(f"# speed: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, torch {torch.__version__}, "
           f"{args.threads} torch thread(s), numpy's BLAS on one thread within each call (napari_fdlc/_blas.py); weights {weights or 'shipped'}")
     print(f"test volume: {len(test)} neurons; template {len(template)} neurons; panel {len(panel.templates)} templates; "

@@ -16,8 +16,8 @@ does (``track(method="cpd")``: the first volume searched in all 16 orientations 
 ``baselines.cpd_search``, every later volume one registration of the reference as deformed onto
 the volume before, ``baselines.cpd_follow``), on the same volumes (``--no-cpd`` leaves it out).
 ``--jump`` adds one sudden move halfway through every sequence, kept to its end (the worm
-slipping under the objective, a stage step): ``turn`` = 45° about the optical axis (about the
-volume's centroid), ``shift`` = 10 µm along x.
+slipping under the objective, a stage step): ``turn`` = 45° about the optical axis (through the
+centroid of the first volume moved), ``shift`` = 10 µm along x.
 """
 
 from __future__ import annotations
@@ -33,15 +33,15 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 
-def _turned(volume, degrees: float = 45.0):
+def _turned(volume, centre, degrees: float = 45.0):
     from napari_fdlc.table import NeuronTable
 
-    a, centre = np.radians(degrees), volume.xyz.mean(0)
+    a = np.radians(degrees)
     about_z = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
     return NeuronTable((volume.xyz - centre) @ about_z.T + centre, dict(volume.colours))
 
 
-def _shifted(volume, um: float = 10.0):
+def _shifted(volume, centre, um: float = 10.0):
     from napari_fdlc.table import NeuronTable
 
     return NeuronTable(volume.xyz + [um, 0, 0], dict(volume.colours))
@@ -94,9 +94,10 @@ def main(argv=None) -> int:
     for motion in args.motion:
         params = SequenceParams(frames=args.frames).scaled(motion)
         sequences = [simulate_sequence(generate_worm(seed=args.seed + k), args.seed + k, params) for k in range(args.sequences)]
-        if args.jump:
-            sequences = [([v if t < args.frames // 2 else JUMPS[args.jump](v) for t, v in enumerate(volumes)], origins)
-                         for volumes, origins in sequences]
+        if args.jump:  # about one centre (the first moved volume's centroid): one move, not one per volume
+            half = args.frames // 2
+            sequences = [([v if t < half else JUMPS[args.jump](v, volumes[half].xyz.mean(0)) for t, v in enumerate(volumes)],
+                          origins) for volumes, origins in sequences]
         for label, (method, settings) in methods.items():
             hit = total = 0
             free = []  # per recording (NaN: nothing to leave untracked)

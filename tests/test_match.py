@@ -6,6 +6,7 @@ import pytest
 from napari_fdlc.errors import FdlcError
 
 from napari_fdlc.match import assign, make_labelling, min_cost_matching, name_probabilities, one_to_one, top_k
+from napari_fdlc.match import assign_log
 
 
 def brute_force(probs, weight=1.0):
@@ -197,3 +198,69 @@ def test_a_decided_name_moves_its_rivals_share_as_a_certain_answer_does():
     assert decided[1, 1] == pytest.approx(certain[1, 1], abs=0.05), (decided[1], certain[1])
     labelling = make_labelling(["A", "B"], np.array([[0.6, 0.3], [0.7, 0.2]]), fixed={0: "A"})
     assert labelling.thresholded(0.4) == ["A", "B"], (labelling.auto_conf, labelling.no_match)
+
+
+def _one_neuron_too_many(rest: float = 1e-4) -> np.ndarray:
+    """10 neurons each 0.999 sure of their own name, an 11th spread evenly over the 10 names;
+    every row leaves ``rest`` to "no named match"."""
+    m = 10
+    p = np.full((m + 1, m), (1 - 0.999 - rest) / (m - 1))
+    p[np.arange(m), np.arange(m)] = 0.999
+    p[m] = (1 - rest) / m
+    return p
+
+
+@pytest.mark.xfail(strict=True, reason="known (session 34): one_to_one stops after 50 Sinkhorn iterations; the "
+                   "shipped inference settings were fitted on these marginals, so converging them needs a refit")
+def test_one_to_one_marginals_keep_each_name_to_one_neuron_when_neurons_outnumber_names():
+    """one_to_one (the probabilities shown: candidates, auto_conf) promises every name's column
+    a total of at most 1, so with 11 neurons and 10 names the "no named match" shares must add
+    up to at least 1 (pigeonhole). With model answers whose no-match share is small (1e-4) the
+    fixed 50 Sinkhorn iterations stop far from that: every name totals 1.089 and the no-match
+    shares 0.11; run to convergence they give 1.000 and 1.00."""
+    p = _one_neuron_too_many()
+    out = one_to_one(p)
+    assert out.sum(axis=0).max() <= 1 + 1e-3, out.sum(axis=0)
+    assert (1 - out.sum(axis=1)).sum() >= 1 - 1e-3, 1 - out.sum(axis=1)
+
+
+@pytest.mark.xfail(strict=True, reason="known (session 34): one_to_one stops after 50 Sinkhorn iterations; the "
+                   "shipped inference settings were fitted on these marginals, so converging them needs a refit")
+def test_labelling_probabilities_are_one_to_one_with_two_names_and_three_neurons():
+    """Three neurons each certain it is A or B (no "no match" share): at most two can be named,
+    so the shown probabilities must leave a total of at least 1 to "no named match" and give
+    each name at most 1. make_labelling reports A and B each at a total of 1.17 and only 0.66
+    for no-match across the three neurons."""
+    lab = make_labelling(["A", "B"], np.full((3, 2), 0.5))
+    assert lab.probs.sum(axis=0).max() <= 1 + 1e-3, lab.probs.sum(axis=0)
+    assert lab.no_match.sum() >= 1 - 1e-3, lab.no_match
+
+
+def test_assign_log_does_not_prefer_a_name_far_less_likely_than_no_match():
+    """no_match_weight 0.2 makes "no named match" 5x less attractive, no more. Neuron 1 loses A
+    to neuron 0; its remaining options are B at log p -60 and no-match at -40 (1e8 times more
+    likely), so it should stay unnamed. Both are floored at log(1e-12) *before* the weight is
+    applied, which leaves them tied and lets the weight pick B."""
+    log_p = np.array([[0.0, -60.0, -60.0], [0.0, -60.0, -40.0]])
+    choice = assign_log(log_p, 0.2)
+    assert list(choice) == [0, -1], choice
+
+
+def test_assign_does_not_give_a_neuron_a_name_of_probability_zero():
+    """Two neurons both certain they are A (B has probability exactly 0 for each). One gets A;
+    the other must stay unnamed: B is impossible for it. With no_match_weight 0.2 (the
+    default of Identifier and the tracker) assign names it B, as both B (0) and "no named match"
+    (0) are clipped to 1e-12 before the weight is applied. make_labelling then shows auto_id 'B'
+    at auto_conf 0, a name missing from the neuron's own candidates."""
+    probs = np.array([[1.0, 0.0], [1.0, 0.0]])
+    assert list(assign(probs, no_match_weight=0.2)) == [0, -1]
+    lab = make_labelling(["A", "B"], probs, no_match_weight=0.2)
+    assert lab.auto_id == ["A", ""], (lab.auto_id, lab.auto_conf, lab.candidates(2)[0])
+
+
+def test_make_labelling_refuses_fewer_names_than_columns():
+    """make_labelling refuses inconsistent input with FdlcError (repeated names), as
+    name_probabilities refuses fewer names than columns. With 1 name for a 2-column answer it
+    fails with a bare IndexError (names[col]) instead."""
+    with pytest.raises(FdlcError):
+        make_labelling(["A"], np.array([[0.1, 0.8]]))

@@ -128,7 +128,8 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs):
     path = _followed(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        # a short name: a file name of 245 characters (Linux allows 255) left no room for ".<name>.<random>.tmp"
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name[:40]}.", suffix=".tmp", dir=path.parent)
     except OSError as exc:  # said of the file asked for, not of the temporary one
         raise OSError(exc.errno, exc.strerror, str(path)) from None
     try:

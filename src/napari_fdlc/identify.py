@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import threading
 from dataclasses import dataclass, replace
 from importlib import resources
@@ -216,6 +217,8 @@ class Identifier:
 
         self.torch = torch
         self.device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+        if isinstance(model, (str, os.PathLike)):
+            raise TypeError(f"Identifier takes a loaded model; for weights on disk use Identifier.load({str(model)!r})")
         self.model = model.to(self.device).eval() if model is not None else None
         self.settings = settings or InferenceSettings()
         self._traced: dict = {}  # see _model_pass; shared with copies made by with_settings
@@ -775,6 +778,11 @@ class Identifier:
         that the prior keeps its weight); the other templates run in the chosen chirality only.
         A test that shows much of the body beyond the head is named in its head only
         (:func:`napari_fdlc.register.head_window`); the rest get no name."""
+        from .reference import Panel  # (not at the top: reference imports this module's neighbours)
+
+        if not isinstance(panel, Panel):
+            raise TypeError(f"label_panel takes the built-in panel (napari_fdlc.reference.load_panel()), not a "
+                            f"{type(panel).__name__}; for templates use label()")
         use_colour = self._check(test, panel.templates, use_colour)
         fixed = check_fixed(fixed, len(test)) or None  # as a table's names are read: ' ADAL ' and 'ADAL?' are ADAL
         window = head_window(test, panel.atlas.mixture(), use_colour)
@@ -911,6 +919,7 @@ class Identifier:
             raise ModelError("no model loaded")
         if not templates:
             raise FdlcError("no template given")
+        _need_tables(test, templates)
         check_named(templates)
         if len(test) == 0:
             raise FdlcError(f"{test.source or 'the test'}: no neurons to name")
@@ -995,6 +1004,15 @@ def decide_handedness(willingness, registration=None) -> tuple[str | None, int, 
         if n and binomtest(k, n, 0.5, alternative=side).pvalue < BATCH_HANDEDNESS_P:
             return decided, k, n
     return None, k, n
+
+
+def _need_tables(test, templates) -> None:
+    """A script's test and templates are neuron tables (a DataFrame or an array ended in an
+    AttributeError deep inside)."""
+    for what, table in (("the test", test), *(("a template", t) for t in templates)):
+        if not isinstance(table, NeuronTable):
+            raise TypeError(f"{what} must be a NeuronTable (napari_fdlc.table.read_table, or NeuronTable(xyz)), "
+                            f"not a {type(table).__name__}")
 
 
 def _fixed_in(fixed: dict[int, str] | None, rows: np.ndarray) -> dict[int, str] | None:
@@ -1218,6 +1236,8 @@ def label_neurons(
     from .reference import load_panel
 
     identifier = identifier or default_identifier()
+    templates = None if templates is None else list(templates)  # a generator, read once (it was used up by the check)
+    _need_tables(test, templates or [])
     if not templates:
         return identifier.label_panel(test, load_panel(), use_colour=use_colour, fixed=fixed)
     for t in templates:

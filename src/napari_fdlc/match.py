@@ -9,6 +9,8 @@ averaged into one answer per name), and :func:`assign` picks one name per test n
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -93,7 +95,9 @@ def assign(probs: np.ndarray, fixed: dict[int, int] | None = None, no_match_weig
         return result
     p = probs[np.ix_(rows, cols)]
     no_match = np.clip(1.0 - probs[rows].sum(axis=1), _TINY, 1.0)
-    chosen = min_cost_matching(-np.log(np.clip(p, _TINY, 1.0)), -np.log(no_match * no_match_weight))
+    # floored after the weight, as the names are: a name of probability 0 must not beat a
+    # no-match share floored first and then weighted below the floor
+    chosen = min_cost_matching(-np.log(np.clip(p, _TINY, 1.0)), -np.log(np.clip(no_match * no_match_weight, _TINY, None)))
     result[rows] = np.where(chosen >= 0, cols[np.maximum(chosen, 0)], -1)
     return result
 
@@ -103,8 +107,9 @@ def assign_log(log_p: np.ndarray, no_match_weight: float = 1.0) -> np.ndarray:
     match") as a model gives them, without taking their exp and log again: the same costs,
     clipped alike."""
     _check_no_match_weight(no_match_weight)
-    floored = np.maximum(log_p, np.log(_TINY))
-    return min_cost_matching(-floored[:, :-1], -floored[:, -1] - np.log(no_match_weight))
+    floor = np.log(_TINY)
+    unmatched = np.maximum(log_p[:, -1] + np.log(no_match_weight), floor)  # weighted, then floored (see assign)
+    return min_cost_matching(-np.maximum(log_p[:, :-1], floor), -unmatched)
 
 
 def _check_no_match_weight(weight: float) -> None:
@@ -145,6 +150,8 @@ def min_cost_matching(cost: np.ndarray, unmatched: np.ndarray) -> np.ndarray:
 
 
 def top_k(probs: np.ndarray, names: list[str], k: int) -> tuple[list[list[str]], np.ndarray]:
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 0:
+        raise FdlcError(f"candidates: k must be a whole number of at least 0 (got {k!r})")
     n, v = probs.shape
     kk = min(k, v)
     order = np.argsort(-probs, axis=1, kind="stable")[:, :kk]
@@ -189,6 +196,8 @@ def one_to_one(probs: np.ndarray, fixed: dict[int, int] | None = None, iteration
 def check_fixed(fixed: dict | None, n: int) -> dict[int, str]:
     """The user's decided names by row (``fixed``), checked against a test of ``n`` neurons:
     rows are whole numbers 0..n-1, and a name belongs to one neuron."""
+    if fixed is not None and not isinstance(fixed, Mapping):
+        raise FdlcError(f"decided names: a mapping of row -> name is needed, not a {type(fixed).__name__}")
     rows_of = {}
     for row, given in (fixed or {}).items():
         if isinstance(row, (bool, np.bool_)) or not isinstance(row, (int, np.integer)) or not 0 <= row < n:
@@ -220,6 +229,11 @@ def make_labelling(
     if len(set(names)) != len(names):
         repeated = sorted({n for n in names if names.count(n) > 1})
         raise FdlcError(f"make_labelling: the names {', '.join(map(repr, repeated))} occur more than once; a name is one column")
+    probs = np.asarray(probs, float)
+    if probs.ndim != 2 or probs.shape[1] != len(names) or (assign_probs is not None and np.shape(assign_probs) != probs.shape):
+        raise FdlcError(f"make_labelling: {len(names)} names for probabilities of shape {probs.shape}"
+                        + ("" if assign_probs is None else f" (assign_probs {np.shape(assign_probs)})")
+                        + "; one column per name")
     column = {n: i for i, n in enumerate(names)}
     fixed = check_fixed(fixed, len(probs))
     fixed_cols = {row: column.get(name, -1) for row, name in fixed.items()}

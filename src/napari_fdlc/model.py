@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .colour import IDENTITY_CHANNELS
-from .errors import ModelError, model_files, plain_permissions
+from .errors import ModelError, _followed, model_files, plain_permissions
 
 DEFAULT_CONFIG = {
     "dim": 64,
@@ -265,12 +265,12 @@ def matching_loss(log_probs, target, negative=None, entropy_weight=0.0):
 def save_model(model: CorrespondenceModel, path: str | Path, card: dict | None = None) -> None:
     from safetensors.torch import save_file
 
-    weights, config_path = model_files(path)
+    weights, config_path = (_followed(f) for f in model_files(path))  # links: the files they name
     weights.parent.mkdir(parents=True, exist_ok=True)
     # Both files are written in full before either replaces the old one: an interruption while
     # writing leaves the old pair whole.
-    tmp = Path(f"{weights}.tmp")
-    json_tmp = Path(f"{config_path}.tmp")
+    tmp = weights.with_name(f".{weights.name[:40]}.tmp")
+    json_tmp = config_path.with_name(f".{config_path.name[:40]}.tmp")
     try:
         save_file({k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}, str(tmp))
         plain_permissions(tmp)

@@ -67,11 +67,16 @@ REVIEW_COLUMNS = (
 # Where sessions live
 
 
+_SESSION_DIRS: dict[str, Path] = {}
+
+
 def user_session_dir() -> Path:
     """The user's data folder for sessions (``$FDLC_SESSION_DIR`` overrides platformdirs)."""
     env = os.environ.get("FDLC_SESSION_DIR")
-    if env:  # '~/sessions' as a shell would mean it, and not relative to where napari started
-        return Path(env).expanduser().absolute()
+    if env:  # '~/sessions' as a shell would mean it; a relative one from the working folder when first used
+        if env not in _SESSION_DIRS:  # (not wherever a script's os.chdir has gone since)
+            _SESSION_DIRS[env] = Path(env).expanduser().absolute()
+        return _SESSION_DIRS[env]
     import platformdirs
 
     return Path(platformdirs.user_data_dir("napari-fdlc", appauthor=False)) / "sessions"

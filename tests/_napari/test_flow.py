@@ -265,3 +265,204 @@ def test_the_model_warms_up_while_the_user_picks_channels(make_napari_viewer, sa
     assert warmed, "the warm-up ran no model pass"
     assert widget.auto_label() is not None
     assert set(identifier._traced) == warmed, "the first Auto-label traced the model again"
+
+
+
+
+VOX = (1.0, 0.4, 0.4)
+
+
+def _blobs(seed=0, shape=(12, 48, 64), n=8, extra=()):
+    """Four channels of ``n`` Gaussian nuclei (sigma 0.9 µm) on noise; centres z, y, x in µm."""
+    rng = np.random.default_rng(seed)
+    z, y, x = (a * v for a, v in zip(np.indices(shape).astype(float), VOX))
+    ext = np.array(shape) * VOX
+    centres = [np.asarray(c, float) for c in extra]
+    while len(centres) < n + len(extra):
+        c = rng.uniform([3, 3, 3], ext - 3)
+        if all(np.linalg.norm(c - d) > 5 for d in centres):
+            centres.append(c)
+    centres = np.array(centres)
+    chans = []
+    for _ in range(4):
+        img = rng.normal(100, 3, shape)
+        for c in centres:
+            img += rng.uniform(300, 900) * np.exp(-((z - c[0]) ** 2 + (y - c[1]) ** 2 + (x - c[2]) ** 2) / (2 * 0.9 ** 2))
+        chans.append(img.astype(np.float32))
+    return chans, centres
+
+
+def _tiny_viewer(make_napari_viewer, identifier, templates, chans=None, **layer_kwargs):
+    """napari with a tiny 4-channel stack added by a script (R/G/B/W named) and the widget docked."""
+    chans = chans if chans is not None else _blobs()[0]
+    viewer = make_napari_viewer()
+    for role, data in zip("RGBW", chans):
+        viewer.add_image(data, name=f"tiny [{role}]", scale=VOX, **layer_kwargs)
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    return viewer, widget
+
+
+def _notifications_since(before):
+    from napari.utils.notifications import notification_manager
+
+    return [str(r.message) for r in notification_manager.records[before:]]
+
+
+def _n_records():
+    from napari.utils.notifications import notification_manager
+
+    return len(notification_manager.records)
+
+
+@pytest.mark.parametrize("how", ["rotate", "affine"])
+def test_an_image_rotated_in_the_viewer_does_not_get_neurons_off_its_nuclei(make_napari_viewer, identifier, templates, how):
+    """docs/gui.md: the channels must 'sit where the file put them', as neurons are placed and their
+    colours read in the image's own voxels; a translated image is refused with a message. A user
+    who rotates the image layers to see the worm straight (layer.rotate, or an affine) should get
+    the same: either a message, or neuron-ID points that land on the nuclei shown. Instead
+    Auto-label runs, and the neuron-ID layer (no transform) sits away from the rotated image."""
+    chans, centres = _blobs()
+    viewer, widget = _tiny_viewer(make_napari_viewer, identifier, templates, chans)
+    for layer in list(viewer.layers):
+        if how == "rotate":
+            layer.rotate = 90
+        else:
+            layer.affine = [[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]]
+    result = widget.auto_label()
+    if result is None:  # refused: it must say why
+        assert widget.last_error and "unexpected" not in widget.last_error, widget.last_error
+        return
+    image = viewer.layers["tiny [W]"]
+    nuclei_world = np.array([image.data_to_world(c / np.asarray(VOX)) for c in centres])
+    points_world = np.array([result.data_to_world(p) for p in np.asarray(result.data)])
+    gap = np.linalg.norm(points_world[:, None] - nuclei_world[None], axis=2).min(axis=1)
+    assert np.median(gap) < 1.5, f"neuron-ID points lie a median {np.median(gap):.1f} µm off the nuclei shown"
+
+
+def test_a_multiscale_image_layer_gets_a_message_not_an_unexpected_error(make_napari_viewer, identifier, templates):
+    """An image layer added by a script (or another plugin's reader) as a pyramid
+    (``add_image([full, half], multiscale=True)``, common for big stacks) chosen as W: expected
+    Auto-label to detect on its full-resolution level, or to refuse it in one message. Instead
+    the worker crashes: 'unexpected error (TypeError: list indices must be integers or slices,
+    not tuple)' (stack_from_layers indexes ``layer.data``, a list of levels)."""
+    chans, _ = _blobs()
+    viewer, widget = _tiny_viewer(make_napari_viewer, identifier, templates, chans)
+    viewer.add_image([chans[3], chans[3][:, ::2, ::2]], multiscale=True, name="pyramid", scale=VOX)
+    widget.set_channels(R=None, G=None, B=None, W="pyramid")
+    widget.auto_label()
+    assert widget.last_error is None or "unexpected error" not in widget.last_error, widget.last_error
+
+
+def test_detecting_without_a_w_channel_says_so_in_napari(make_napari_viewer, identifier, templates):
+    """W set to (none), the colour channels chosen: detection runs on the sum of the channels and
+    the core warns 'no W (TagRFP-T) channel marked; detecting on the sum of channels' (fdlc
+    segment shows it). In napari that line goes to stderr only (the worker has no
+    ``warnings_to``): the user, who does not see stderr, is never told what nuclei were found on."""
+    viewer, widget = _tiny_viewer(make_napari_viewer, identifier, templates)
+    widget.set_channels(W=None)
+    before = _n_records()
+    assert widget.auto_label() is not None, widget.last_error
+    messages = _notifications_since(before)
+    assert any("W" in m and "sum of" in m for m in messages), messages
+
+
+def test_neurons_that_lie_outside_the_chosen_image_are_not_coloured_from_its_edge_silently(
+        make_napari_viewer, identifier, templates):
+    """docs/gui.md: with a Points layer as Neurons, 'colours are read from the image when the
+    layer has none'. A Points layer that does not lie on the chosen image at all (another
+    worm's table, or the wrong channels chosen: here every point is beyond the stack) should be
+    refused or get a warning. Instead measure_colours clips every position to the stack's edge
+    (segment._sample) and the neurons are named with colours read from the border voxels, and
+    napari says nothing."""
+    chans, centres = _blobs()
+    viewer, widget = _tiny_viewer(make_napari_viewer, identifier, templates, chans)
+    extent = np.array(chans[0].shape) * VOX
+    viewer.add_points(centres + [0.0, 0.0, 2 * extent[2]], name="another worm")  # µm, beyond x
+    widget.set_neurons("another worm")
+    before = _n_records()
+    result = widget.auto_label()
+    messages = _notifications_since(before)
+    assert result is None or messages, "named with colours from the image's edge; no message"
+
+
+def test_a_template_layer_with_a_repeated_name_says_so_in_napari(make_napari_viewer, identifier, templates):
+    """A Points layer with names as the template (docs/gui.md): a name on two rows is read as
+    unnamed on both (table_from_layer -> _drop_duplicate_names), which warns on stderr only.
+    The same for a template *file* reaches napari (add_template_file wraps warnings_to); the
+    layer's does not, so the user loses that name from the template without a word."""
+    viewer, widget = _tiny_viewer(make_napari_viewer, identifier, templates)
+    t = templates[0]
+    labels = np.array(t.labels, dtype=object).copy()
+    named = np.flatnonzero(labels != "")
+    labels[named[1]] = labels[named[0]]
+    viewer.add_points(t.xyz[:, ::-1], name="labelled worm", features={"label": labels})
+    widget.set_template("labelled worm")
+    before = _n_records()
+    assert widget.auto_label() is not None, widget.last_error
+    messages = _notifications_since(before)
+    assert any(labels[named[0]] in m for m in messages), messages
+
+
+@pytest.mark.parametrize("dialog", ["cancelled", "unreadable file"])
+def test_leaving_the_labelled_table_file_dialog_keeps_the_template_chosen_before(make_napari_viewer, templates, tmp_path,
+                                                                                 monkeypatch, dialog):
+    """The user has a labelled worm chosen as the template, opens *Names from*, picks
+    'Labelled table file…' and cancels the file dialog (or picks a file that cannot be read).
+    Expected: the template chosen before stays chosen. Instead the choice falls back to the
+    built-in panel / script templates on cancel (_refresh_choices' fallback from
+    FROM_FILE), or stays on the 'Labelled table file…' entry after the error, which
+    _templates() silently runs as the built-in panel: Auto-label then names the worm from
+    another template than the one the user had chosen."""
+    from napari_fdlc._napari import _widget as widget_module
+    from napari_fdlc._napari._widget import FROM_FILE
+    from napari_fdlc.table import write_table
+
+    viewer = make_napari_viewer()
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    write_table(templates[0], tmp_path / "my_worm.csv")
+    chosen = widget.add_template_file(tmp_path / "my_worm.csv")
+    assert widget.template_combo.currentText() == chosen
+    bad = tmp_path / "not_a_table.csv"
+    bad.write_text("a,b\n1,2\n")
+    answer = "" if dialog == "cancelled" else str(bad)
+    monkeypatch.setattr(widget_module.QFileDialog, "getOpenFileName", staticmethod(lambda *a, **k: (answer, "")))
+    index = widget.template_combo.findText(FROM_FILE)
+    widget.template_combo.setCurrentIndex(index)  # what a click on the entry does before 'activated'
+    widget._on_template_activated(index)
+    assert widget.template_combo.currentText() == chosen, widget.template_combo.currentText()
+
+
+def test_two_template_files_of_the_same_name_are_both_offered(make_napari_viewer, templates, tmp_path):
+    """Labelled worms of two rigs kept as rig1/worm1.csv and rig2/worm1.csv, both added with
+    'Labelled table file…'. Expected: two entries, each naming from its own file. Instead the
+    entries are keyed by the file name only ('file: worm1.csv'): the second silently replaces
+    the first, which is no longer offered, and the session's settings record a template that
+    could be either."""
+    from napari_fdlc.table import NeuronTable, write_table
+
+    viewer = make_napari_viewer()
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    t = templates[0]
+    (tmp_path / "rig1").mkdir()
+    (tmp_path / "rig2").mkdir()
+    write_table(t, tmp_path / "rig1" / "worm1.csv")
+    write_table(NeuronTable(t.xyz * [1, 1, -1], t.colours, t.labels), tmp_path / "rig2" / "worm1.csv")
+    first = widget.add_template_file(tmp_path / "rig1" / "worm1.csv")
+    second = widget.add_template_file(tmp_path / "rig2" / "worm1.csv")
+    entries = [widget.template_combo.itemText(i) for i in range(widget.template_combo.count())]
+    assert first != second and first in entries and second in entries, entries
+
+
+def test_a_run_refused_at_the_start_does_not_show_a_full_progress_bar(make_napari_viewer, identifier, templates):
+    """An error inside the job leaves the progress bar at 0 % with the message (_set_running).
+    An Auto-label refused before the job starts (here: every channel set to (none)) after an
+    earlier successful run writes its message onto the bar but leaves it at 100 %: a full bar
+    reading 'no image chosen to detect nuclei in…', as if something had completed."""
+    viewer, widget = _tiny_viewer(make_napari_viewer, identifier, templates)
+    assert widget.auto_label() is not None, widget.last_error
+    widget.set_channels(R=None, G=None, B=None, W=None)
+    widget.run_button.click()
+    assert widget.last_error and "no image" in widget.last_error, widget.last_error
+    assert widget.progress_bar.value() == 0, (widget.progress_bar.value(), widget.progress_bar.format())

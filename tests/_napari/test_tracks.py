@@ -483,3 +483,57 @@ def test_cancel_racing_the_end_of_the_job_leaves_a_stale_cancelling_status(make_
     assert widget.wait(timeout=120)
     assert not widget.cancelled and widget.last_error is None and len(widget.layers) >= 1
     assert "cancelling" not in widget.status.text(), widget.status.text()
+
+
+torch = pytest.importorskip("torch")
+
+
+torch.set_num_threads(1)
+
+
+def _press(viewer, key):
+    """A key press as the canvas delivers it (active layer keymap first, then the viewer's)."""
+    return viewer.window._qt_viewer._key_map_handler.press_key(key)
+
+
+def test_set_recording_by_its_file_chooses_that_file_when_two_recordings_share_a_name(make_napari_viewer, tmp_path):
+    """gui.md, Scripting: "t.set_recording("recording.ome.tif") (a recording open in the viewer,
+    by its file or name)". With day1/worm.ome.tif and day2/worm.ome.tif both open (offered as
+    'recording: worm' and 'recording: worm [2]'), set_recording(<day2 path>) should choose day 2.
+    It chooses day 1 (matched by the short name 'worm' only), so Track silently tracks the other
+    recording."""
+    from napari_fdlc._napari.tracks import TrackWidget
+
+    viewer = make_napari_viewer()
+    keys = {}
+    for day in ("day1", "day2"):
+        keys[day] = str(tmp_path / day / "worm.ome.tif")
+        viewer.add_image(np.zeros((2, 4, 16, 16), np.float32), name=f"worm {day} [W]",
+                         metadata={"fdlc": {"image": keys[day], "role": "W", "stack_name": "worm"}})
+    widget = TrackWidget(viewer)
+    viewer.window.add_dock_widget(widget, name="Track")
+    widget.set_recording(keys["day2"])
+    assert widget.source_combo.currentData() == keys["day2"], (
+        f"set_recording({keys['day2']!r}) chose {widget.source_combo.currentText()!r} = {widget.source_combo.currentData()}")
+
+
+def test_a_relative_session_dir_is_taken_from_where_napari_started(labelled_viewer, make_napari_viewer, tmp_path,
+                                                                    monkeypatch):
+    """gui.md, Autosave: "FDLC_SESSION_DIR overrides it (... a relative path is taken from where
+    napari starts)". The relative path is resolved against the *current* folder at every look-up
+    (review.user_session_dir), so after the working folder changes in the running napari (its
+    console's %cd, a script's os.chdir) reopening the image no longer finds its session."""
+    start, later = tmp_path / "start", tmp_path / "later"
+    start.mkdir()
+    later.mkdir()
+    monkeypatch.chdir(start)
+    monkeypatch.setenv("FDLC_SESSION_DIR", "my-sessions")
+    viewer, widget = labelled_viewer
+    assert widget.auto_label() is not None, widget.last_error
+    saved = widget.session.path
+    assert saved.is_file() and start in saved.parents
+    monkeypatch.chdir(later)
+    viewer2 = make_napari_viewer()
+    viewer2.open_sample("napari-fdlc", "neuropal")
+    restored = [lyr for lyr in viewer2.layers if lyr.name.endswith("neuron IDs")]
+    assert restored, f"the session saved in {saved} was not restored after the working folder changed"

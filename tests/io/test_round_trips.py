@@ -13,6 +13,7 @@ from napari_fdlc.errors import FdlcError
 from napari_fdlc.io import images
 from napari_fdlc.io.images import Stack, read_series, read_stack, write_tiff
 from napari_fdlc.io.nwb import write_nwb
+from napari_fdlc.table import NeuronTable, read_table, write_table
 
 VOXEL = {"PhysicalSizeX": 0.25, "PhysicalSizeY": 0.25, "PhysicalSizeZ": 1.5}
 
@@ -173,3 +174,121 @@ def test_a_stack_refuses_channel_names_that_do_not_fit_its_channels(tmp_path):
     of names."""
     with pytest.raises(FdlcError):
         Stack(_data((2, 5, 16, 16)), (1.5, 0.25, 0.3), ["W", "R"], channel_names=["TagRFP-T"])
+
+
+VOXEL_h = (1.5, 0.25, 0.3)
+
+
+def _stack(n_channels=4):
+    roles = ["R", "G", "B", "W", "GFP"][:n_channels]
+    return Stack(_data((n_channels, 4, 8, 8)), VOXEL_h, roles)
+
+
+def test_write_nwb_through_a_symlink_writes_the_linked_file(tmp_path):
+    """Expected: write_nwb to a path that is a symbolic link writes the file the link names and
+    keeps the link, as every other writer does (errors.atomic_write follows links; check_output
+    says "a link stands for the file it names"). Actual: the link itself is replaced by a new
+    file and the linked file keeps its old content. Cause: io/nwb.py:write_nwb builds its
+    temporary name from the link and os.replace()s it over the link, without errors._followed."""
+    real = tmp_path / "real.nwb"
+    real.write_bytes(b"old")
+    link = tmp_path / "link.nwb"
+    link.symlink_to(real)
+    write_nwb(link, _stack())
+    assert link.is_symlink()
+    assert real.read_bytes() != b"old"
+    assert read_stack(real).channel_roles == ["R", "G", "B", "W"]
+
+
+def test_save_model_through_a_symlink_writes_the_linked_files(tmp_path):
+    """Expected: save_model to weights that are a symbolic link (a shared 'current' model
+    linked into a runs folder) writes the linked file and keeps the link, as atomic_write does
+    for every other output. Actual: the link is replaced by a plain file; the linked weights
+    stay the old ones. Cause: model.py:save_model renames its '.tmp' files over the paths given
+    (Path.replace) without following a link."""
+    import torch
+
+    from napari_fdlc.model import CorrespondenceModel, load_model, save_model
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    model = CorrespondenceModel({"layers": 1, "dim": 32})
+    real = tmp_path / "shared"
+    save_model(model, real)
+    old = (tmp_path / "shared.safetensors").read_bytes()
+    (tmp_path / "mine.safetensors").symlink_to(tmp_path / "shared.safetensors")
+    (tmp_path / "mine.json").symlink_to(tmp_path / "shared.json")
+    torch.manual_seed(1)
+    save_model(CorrespondenceModel({"layers": 1, "dim": 32}), tmp_path / "mine")
+    assert (tmp_path / "mine.safetensors").is_symlink() and (tmp_path / "mine.json").is_symlink()
+    assert (tmp_path / "shared.safetensors").read_bytes() != old
+    load_model(tmp_path / "mine")
+
+
+def _long_name(tmp_path, suffix):
+    name = "w" * (245 - len(suffix)) + suffix  # 245 characters: below NAME_MAX (255)
+    (tmp_path / name).write_text("")  # the file system takes it
+    (tmp_path / name).unlink()
+    return tmp_path / name
+
+
+@pytest.mark.parametrize("what", ["write_table", "write_nwb"])
+def test_a_long_valid_file_name_can_be_written(tmp_path, what):
+    """Expected: an output of a 245-character name (valid: Linux allows 255) is written.
+    Actual: OSError [Errno 36] 'File name too long' (write_table; write_nwb: ImageError
+    'cannot be written (Unable to synchronously create file ... File name too long ...)'): the temporary file beside it is named
+    '.<name>.<random>.tmp' (errors.atomic_write: mkstemp prefix) or
+    '.<stem>.<8 hex>.tmp.nwb' (io/nwb.py:write_nwb), 10-20 characters longer than the name
+    asked for, which passes the limit. Every writer through atomic_write (tables, NeuroPAL_ID
+    CSV, TIFF, atlas, session) has the same limit."""
+    if what == "write_table":
+        path = _long_name(tmp_path, ".csv")
+        write_table(NeuronTable([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], labels=["AVAL", "AVAR"]), path)
+        assert list(read_table(path).labels) == ["AVAL", "AVAR"]
+    else:
+        path = _long_name(tmp_path, ".nwb")
+        write_nwb(path, _stack())
+        assert read_stack(path).channel_roles == ["R", "G", "B", "W"]
+
+
+def test_imagej_round_trip_keeps_the_channel_roles(tmp_path):
+    """Expected: write_tiff(ome=False) then read_stack gives back the stack's channel roles, as
+    the OME-TIFF and NWB round trips do (the stack says channel 0, named after its laser line
+    'GFP', is the TagRFP-T W channel and channel 1 is ignored). Actual: the roles come back
+    guessed from the names alone: ['GFP', 'W'], the W channel now called GCaMP and the ignored
+    channel W (and R, G, B, W stacks with names such as 'ch0' come back with no role at all).
+    Cause: io/images.py:write_tiff records only ImageJ Labels (names), nothing of the roles,
+    and _tiff_metadata returns no roles for ImageJ files."""
+    stack = Stack(_data((2, 4, 8, 8)), VOXEL_h, ["W", None], channel_names=["GFP", "TagRFP"])
+    write_tiff(tmp_path / "s.ome.tif", stack)
+    assert read_stack(tmp_path / "s.ome.tif").channel_roles == ["W", None]  # OME keeps them
+    write_tiff(tmp_path / "s.tif", stack, ome=False)
+    assert read_stack(tmp_path / "s.tif").channel_roles == ["W", None]
+
+
+def test_nwb_round_trip_keeps_a_gfp_role_beside_rgbw(tmp_path):
+    """Expected: a five-channel stack (R, G, B, W and GFP, the GCaMP channel named by its laser
+    line '488') written with write_nwb reads back with all five roles, as the OME-TIFF round
+    trip does. Actual: roles [None, 'R', 'G', 'B', 'W']: the GFP role is lost. Cause:
+    io/nwb.py:read_nwb takes RGBW_channels (R, G, B, W only) when present and reads the roles
+    write_nwb put in the optical channels' descriptions (_described_roles) only when
+    RGBW_channels is missing; the channels it leaves None are then guessed from names only."""
+    stack = Stack(_data((5, 4, 8, 8)), VOXEL_h, ["GFP", "R", "G", "B", "W"],
+                  channel_names=["488", "561a", "561b", "405", "561c"])
+    write_tiff(tmp_path / "s.ome.tif", stack)
+    assert read_stack(tmp_path / "s.ome.tif").channel_roles == ["GFP", "R", "G", "B", "W"]
+    write_nwb(tmp_path / "s.nwb", stack)
+    assert read_stack(tmp_path / "s.nwb").channel_roles == ["GFP", "R", "G", "B", "W"]
+
+
+def test_write_nwb_refuses_channel_names_that_do_not_fit_the_channels(tmp_path):
+    """Expected: write_nwb(channel_names=...) with one name for four channels is refused with
+    an ImageError, as write_tiff refuses it ('1 channel names for 4 channels'). Actual: the
+    file is written with one optical channel and one name for a four-channel image; read back,
+    the names given are silently dropped (the channels named after their roles). Cause:
+    io/nwb.py:write_nwb takes ``channel_names`` without checking its length."""
+    stack = _stack()
+    with pytest.raises(FdlcError):
+        write_tiff(tmp_path / "s.ome.tif", stack, channel_names=["a"])
+    with pytest.raises(FdlcError):
+        write_nwb(tmp_path / "s.nwb", stack, channel_names=["a"])

@@ -136,6 +136,13 @@ def stack_from_layers(images: dict, source: str, recording: bool = False):
         raise FdlcError("no image chosen: pick the image layer of at least one channel (W to detect nuclei)")
     layers = list(images.values())
     axes = 4 if recording else 3
+    for layer in layers:
+        if moved_in_viewer(layer.rotate, layer.shear, layer.affine):  # its neurons would land off its nuclei
+            raise FdlcError(f"the image layer '{layer.name}' is rotated, sheared or moved by an affine transform in "
+                            "the viewer; neurons are placed in the image's own voxels: reset its transform first")
+        if getattr(layer, "multiscale", False):
+            raise FdlcError(f"the image layer '{layer.name}' is a multiscale pyramid; add its full-resolution level "
+                            "(layer.data[0]) as an image layer of its own and choose that")
     if any(layer.data.ndim < axes for layer in layers):
         raise FdlcError("the chosen image layers must be recordings (t, z, y, x)" if recording
                         else "the chosen image layers must be 3D stacks (z, y, x)")

@@ -21,6 +21,7 @@ Tests (and users with their own model) inject the model and templates::
 
 from __future__ import annotations
 
+import itertools
 import re
 import sys
 import threading
@@ -59,7 +60,7 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from ..errors import FdlcError, warnings_to
+from ..errors import FdlcError, warn, warnings_to
 from ..review import (
     DEFAULT_THRESHOLD,
     ReviewSession,
@@ -158,6 +159,8 @@ class AutoLabelWidget(QWidget):
         self.last_error: str | None = None
         self._script_templates: list[NeuronTable] | None = None
         self._file_templates: dict[str, NeuronTable] = {}
+        self._file_template_paths: dict[str, Path] = {}
+        self._template_before: tuple[str, object] = (BUILTIN, None)  # restored when a template file is not taken
         self._worker = None
         self._busy = False
         self._stack = None  # the Stack of the last run (colours of points added by hand)
@@ -268,6 +271,7 @@ class AutoLabelWidget(QWidget):
         self.template_combo = _combo()
         self.template_combo.setToolTip("where names come from: the built-in reference panel, or a labelled worm")
         self.template_combo.activated.connect(self._on_template_activated)
+        self.template_combo.currentIndexChanged.connect(self._on_template_changed)
         form.addRow("Names from", self.template_combo)
         self.colour_check = QCheckBox("use NeuroPAL colour")
         self.colour_check.setChecked(True)
@@ -618,14 +622,23 @@ class AutoLabelWidget(QWidget):
             raise FdlcError(f"voxel size '{self.voxel_edit.text()}': give three numbers z y x in µm")
         self.set_voxel_size(*values)
 
+    def _on_template_changed(self, index: int) -> None:
+        """Remember the template chosen (not while the combo is refilled), for a file dialog left
+        without a file."""
+        if not self._guard and index >= 0 and self.template_combo.itemText(index) != FROM_FILE:
+            self._template_before = (self.template_combo.itemText(index), self.template_combo.itemData(index))
+
     def _on_template_activated(self, index: int) -> None:
         if self.template_combo.itemText(index) != FROM_FILE:
             return
+        text, data = self._template_before
         path, _ = QFileDialog.getOpenFileName(self, "Labelled neuron table", "", "CSV (*.csv);;All files (*)")
-        if path:
-            self._gui(self.add_template_file, path)
-        else:
+        if not path or self._gui(self.add_template_file, path) is None:
+            # cancelled, or a file that cannot be a template: the template chosen before stays
+            # (the built-in panel took its place, or 'Labelled table file…' stayed and ran as it)
             self._refresh_choices()
+            with self._guarded():
+                _choose(self.template_combo, data, text if self.template_combo.findText(text) >= 0 else BUILTIN)
 
     # =========================================================================================
     # scripting API: inputs
@@ -661,8 +674,16 @@ class AutoLabelWidget(QWidget):
         reason = implausible_scale(table)
         if reason:  # a table in nm or mm is read, but names come out meaningless: say why
             self._notify_warning(reason)
-        name = f"file: {Path(path).name}"
+        # by the file: two of one name in different folders (rig1/worm1.csv, rig2/worm1.csv) are two
+        resolved, name = Path(path).resolve(), f"file: {Path(path).name}"
+        if self._file_template_paths.get(name, resolved) != resolved:
+            name = f"file: {Path(path).parent.name}/{Path(path).name}"
+            for n in itertools.count(2):
+                if self._file_template_paths.get(name, resolved) == resolved:
+                    break
+                name = f"file: {Path(path).parent.name}/{Path(path).name} [{n}]"
         self._file_templates[name] = table
+        self._file_template_paths[name] = resolved
         self._known_names = None  # its names are offered by the Name field's completer
         self._refresh_choices()
         self.template_combo.setCurrentText(name)
@@ -767,7 +788,8 @@ class AutoLabelWidget(QWidget):
         self._check_idle()
         images = self._chosen_images()
         source = self.neurons_combo.currentText()
-        templates, template_text = self._templates()
+        with warnings_to(self._notify_warning):  # a template layer's repeated name, said in napari
+            templates, template_text = self._templates()
         use_colour = self.colour_check.isChecked()
         diameter = float(self.diameter_spin.value())
         identifier, chirality = self.identifier, self.chirality_combo.currentData()
@@ -829,6 +851,11 @@ class AutoLabelWidget(QWidget):
                 from ..segment import measure_colours
 
                 signals.progress.emit(0.3, "reading colours")
+                extent = (np.asarray(stack.shape_zyx) - 1) * np.asarray(stack.voxel_size_zyx)
+                outside = int(np.sum(np.any((table.xyz[:, ::-1] < 0) | (table.xyz[:, ::-1] > extent), axis=1)))
+                if outside:  # their colours would be read at the image's edge
+                    warn(f"{outside} of the {len(table)} neurons of '{source}' lie outside the chosen image: their "
+                         "colours are read at its edge; check that the points belong to this image")
                 colours = {k: v for k, v in measure_colours(stack, table.xyz, radius_um=0.3 * diameter).items() if k in COLOUR_CHANNELS}
                 table = NeuronTable(table.xyz, colours, extra=table.extra, source=table.source)
             if len(table) == 0:
@@ -888,7 +915,8 @@ class AutoLabelWidget(QWidget):
         (``label_neurons(..., fixed=...)``); user decisions are never changed."""
         self._check_idle()
         session = self._need_session()
-        templates, template_text = self._templates()
+        with warnings_to(self._notify_warning):  # a template layer's repeated name, said in napari
+            templates, template_text = self._templates()
         use_colour = self.colour_check.isChecked()
         identifier, chirality = self.identifier, self.chirality_combo.currentData()
         table = session.table
@@ -958,12 +986,14 @@ class AutoLabelWidget(QWidget):
         from napari.qt.threading import create_worker
 
         self.last_error = None
+        warned: list[str] = []  # what the core warns about in the worker (stderr only), shown when it ends
 
         def guarded_work():
-            try:
-                return work()
-            except FdlcError as exc:  # shown as a one-line notification, not a traceback
-                return _Failed(exc)
+            with warnings_to(warned.append):
+                try:
+                    return work()
+                except FdlcError as exc:  # shown as a one-line notification, not a traceback
+                    return _Failed(exc)
 
         # _ignore_errors: an unexpected exception is shown by napari's notification (with its
         # traceback, it is a bug) instead of being re-raised in the GUI thread.
@@ -975,6 +1005,8 @@ class AutoLabelWidget(QWidget):
         def on_returned(result):
             if self._released:  # the widget was closed while the job ran: its result is dropped
                 return
+            for message in dict.fromkeys(warned):  # e.g. "no W channel marked", once each
+                self._notify_warning(message)
             if isinstance(result, _Failed):
                 self._report_error(result.exc)
                 return
@@ -986,6 +1018,7 @@ class AutoLabelWidget(QWidget):
         def on_errored(exc):
             self.last_error = f"unexpected error ({type(exc).__name__}: {exc})"
             self._status(self.last_error)
+            self._notify_warning(self.last_error)  # not on the progress bar alone
 
         def on_finished():
             self._busy = False
@@ -1459,6 +1492,7 @@ class AutoLabelWidget(QWidget):
             traceback.print_exception(type(exc), exc, exc.__traceback__, file=sys.stderr)
         self.last_error = message
         self._status(message)
+        self.progress_bar.setValue(0)  # not the last run's full bar beside this run's error
         self._notify_error(message)
 
     def _notify_error(self, message: str) -> None:

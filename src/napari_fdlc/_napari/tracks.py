@@ -312,8 +312,16 @@ class TrackWidget(QWidget):
     def set_recording(self, name: str) -> None:
         """Track the recording open in the viewer whose file (or layer) is ``name``."""
         self._refresh_recordings()
-        matches = [t for t in self._recordings() if t == name or t == f"recording: {name}"
-                   or t == f"recording: {_short_name(str(name))}"]
+        recordings = self._recordings()
+        # by the file first: day1/worm.ome.tif and day2/worm.ome.tif are both 'worm'
+        def same_file(key: str) -> bool:
+            try:
+                return bool(name) and Path(key).resolve() == Path(name).resolve()
+            except (OSError, ValueError):
+                return False
+
+        matches = [t for t, (k, _) in recordings.items() if same_file(k)] or [
+            t for t in recordings if t == name or t == f"recording: {name}" or t == f"recording: {_short_name(str(name))}"]
         if not matches:
             raise FdlcError(f"no recording '{name}' in the viewer (open a stack with a time axis)")
         self.source_combo.setCurrentText(matches[0])

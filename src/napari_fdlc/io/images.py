@@ -28,6 +28,7 @@ import numpy as np
 from ..errors import FdlcError
 
 ROLES = ("R", "G", "B", "W", "GFP")
+IMAGEJ_ROLES = "fdlc_roles"  # the ImageJ property write_tiff records each channel's role in
 FLUOROPHORES = {"R": "mNeptune2.5", "G": "CyOFP1.5", "B": "mTagBFP2", "W": "TagRFP-T", "GFP": "GCaMP6s"}
 # Files above this size are wrapped lazily (dask) instead of read into memory.
 LAZY_BYTES = 1 << 30
@@ -661,7 +662,9 @@ def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None, li
             names = list(labels[:n_c])  # ImageJ stores one label per plane, channel fastest
         elif isinstance(labels, list) and n_c == 1 and labels and len(set(labels)) == 1:
             names = [labels[0]]  # one channel: every plane carries its name (as write_tiff writes it)
-        return [z, y, x], names, None
+        written = str((meta.get("Properties") or {}).get(IMAGEJ_ROLES, "")).split(",")
+        roles = [r if r in ROLES else None for r in written] if len(written) == n_c else None
+        return [z, y, x], names, roles if roles and any(roles) else None
     return None, None, None
 
 
@@ -789,7 +792,10 @@ def write_tiff(
         labels = [names[c] for _ in range(planes) for c in range(hyper.shape[-3])]
         tifffile.imwrite(
             buffer, hyper, imagej=True, resolution=(1.0 / x, 1.0 / y),
-            metadata={"axes": time + "ZCYX", "spacing": z, "unit": "um", "Labels": labels},
+            # the roles too (ImageJ has no fluorophore field: read from names alone, they came back
+            # lost or wrong), as a property ImageJ shows in Image > Show Info
+            metadata={"axes": time + "ZCYX", "spacing": z, "unit": "um", "Labels": labels,
+                      "Properties": {IMAGEJ_ROLES: ",".join(r or "" for r in stack.channel_roles)}},
         )
     with atomic_write(path, "wb") as out:
         out.write(buffer.getbuffer())

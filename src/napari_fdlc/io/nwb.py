@@ -33,7 +33,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..errors import FdlcError
+from ..errors import FdlcError, _followed
 from ..table import NeuronTable, parse_name
 from . import images
 from .images import ImageError, Stack, _first_line, _to_um, finish_stack
@@ -258,7 +258,10 @@ def read_nwb(
         voxel = _grid_spacing_um(volume)
         names = _volume_channel_names(volume, image)
         n_channels = shape[3] if len(shape) == 4 else 1
-        roles = _rgbw(image, n_channels, names) or _described_roles(volume, n_channels)
+        roles, described = _rgbw(image, n_channels, names), _described_roles(volume, n_channels)
+        if roles and described:  # RGBW_channels says four; the descriptions may add GFP
+            roles = [r or (d if d not in roles else None) for r, d in zip(roles, described)]
+        roles = roles or described
         nbytes = int(np.prod(shape)) * np.dtype(dset.dtype).itemsize
         try:
             if nbytes > images.LAZY_BYTES:
@@ -393,6 +396,8 @@ def write_nwb(
             raise ImageError("NWB: some neurons lie before the image's first voxel (negative x, y or z); "
                              "voxel masks hold voxels of the image")
     names = list(channel_names or stack.channel_names or [r or f"channel {i}" for i, r in enumerate(stack.channel_roles)])
+    if len(names) != data.shape[0]:  # one name for 4 channels wrote 1 optical channel, read back as none
+        raise ImageError(f"NWB: {len(names)} channel name(s) for {data.shape[0]} channels; give one per channel")
     nwb = NWBFile(
         session_description=session_description,
         identifier=str(uuid.uuid4()),
@@ -428,9 +433,10 @@ def write_nwb(
             ps.add_roi(voxel_mask=[(int(round(vx)), int(round(vy)), int(round(vz)), 1.0)], ID_labels=label)
     roles = stack.channel_roles
     rgbw = [roles.index(r) for r in _RGBW if r in roles]
-    path = Path(path)
-    # pynwb needs a path, not a handle: write beside the target, then rename (atomic).
-    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:8]}.tmp.nwb")
+    path = _followed(Path(path))  # a link: the file it names is written, the link kept
+    # pynwb needs a path, not a handle: write beside the target, then rename (atomic); a short
+    # name, which a file name of 245 characters still leaves room for
+    tmp = path.with_name(f".fdlc-{uuid.uuid4().hex[:8]}.tmp.nwb")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with NWBHDF5IO(str(tmp), "w") as io:
