@@ -5,12 +5,12 @@ from __future__ import annotations
 import importlib.util
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from napari_fdlc.table import NeuronTable
-from types import SimpleNamespace
-import pytest
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -46,18 +46,6 @@ def test_tracking_from_images_split_nucleus_makes_a_perfect_tracker_score_below_
     assert score["accuracy"] == 1.0, (sources, score)
 
 
-BENCH_h = Path(__file__).resolve().parents[1] / "benchmarks"
-
-
-def _bench_h(name: str):
-    if str(BENCH_h) not in sys.path:
-        sys.path.insert(0, str(BENCH_h))
-    spec = importlib.util.spec_from_file_location(f"_hunt_bench_{name}", BENCH_h / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 T1, T2 = [0.0, 0.0, 0.0], [1.6, 0.0, 0.0]
 
 
@@ -73,7 +61,7 @@ def test_identify_from_images_matches_detections_within_1_5_um_one_to_one(monkey
     least-total-distance pairing keeps one pair, so it reports 50 % found and 0 % top-1."""
     from napari_fdlc.segment import score_detections
 
-    ifi = _bench_h("identify_from_images")
+    ifi = _bench("identify_from_images")
     truth = NeuronTable(np.array([T1, T2]), labels=np.array(["AVAL", "AVAR"], dtype=object))
     found = NeuronTable(np.array([F1, F2]), labels=np.array(["AVAL", "AVAR"], dtype=object))
     assert score_detections(truth.xyz, found.xyz, 1.5)["recall"] == 1.0  # the documented matching
@@ -110,7 +98,7 @@ def test_speed_load_average_is_read_before_the_run(monkeypatch):
 
     from napari_fdlc.identify import Identifier
 
-    speed = _bench_h("speed")
+    speed = _bench("speed")
     calls = []
 
     def load_average():
@@ -135,7 +123,7 @@ def test_tracking_jump_turn_is_one_move_not_shifted_by_spurious_detections():
     detections move: one spurious point 30 µm away displaces every real neuron of the turned
     volume by 0.77 × its pull on the centroid (on the benchmark's seeds 100–102 the spurious
     points alone add a median 0.3 µm, up to 1.7 µm, to every post-jump volume)."""
-    tracking = _bench_h("tracking")
+    tracking = _bench("tracking")
     rng = np.random.default_rng(0)
     worm = NeuronTable(rng.normal(size=(20, 3)) * [30, 8, 6])
     with_spurious = NeuronTable(np.vstack([worm.xyz, [[30.0, 0, 0]]]))
@@ -149,7 +137,7 @@ def test_segmentation_condition_error_ignores_a_worm_with_no_match(monkeypatch):
     the matched detections; a worm where nothing matched (all nuclei missed at very high noise,
     or no detection) has no centre error to add. Instead the per-worm medians go through
     np.median, and that worm's NaN makes the whole row's centre error NaN."""
-    seg = _bench_h("segmentation")
+    seg = _bench("segmentation")
     worm = NeuronTable(np.array([[0.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0]]))
     detections = iter([NeuronTable(worm.xyz + [0.1, 0, 0]), NeuronTable(np.zeros((0, 3)))])
     stack = SimpleNamespace(data=np.zeros((1, 1, 1, 1)))
