@@ -98,18 +98,6 @@ if TYPE_CHECKING:
     import napari
 
 ROLES = ("R", "G", "B", "W")
-# Every session shown in a viewer since napari started, by file path, for all the Auto-label
-# widgets docked in it: a session taken up again keeps its undo history, also after the dock
-# was closed and opened again (gui.md).
-_SESSIONS_SHOWN: dict[int, dict[str, ReviewSession]] = {}
-
-
-def _sessions_shown_in(viewer) -> dict[str, ReviewSession]:
-    key = id(viewer)
-    if key not in _SESSIONS_SHOWN:
-        _SESSIONS_SHOWN[key] = {}
-        weakref.finalize(viewer, _SESSIONS_SHOWN.pop, key, None)  # a viewer closed takes its sessions along
-    return _SESSIONS_SHOWN[key]
 SEGMENT = "Detect nuclei in the image"
 BUILTIN = "Built-in reference panel"
 SCRIPTED = "Templates given by script"
@@ -1650,6 +1638,20 @@ def _saved_session(image_key: str) -> tuple[ReviewSession | None, str | None]:
         return ReviewSession.load(path), None
     except FdlcError as exc:
         return None, str(exc)
+
+
+# Every session shown in a viewer since napari started, by file path, for all the Auto-label
+# widgets docked in it: a session taken up again keeps its undo history, also after the dock
+# was closed and opened again (gui.md).
+_SESSIONS_SHOWN: dict[int, dict[str, ReviewSession]] = {}
+
+
+def _sessions_shown_in(viewer) -> dict[str, ReviewSession]:
+    key = id(viewer)
+    if key not in _SESSIONS_SHOWN:
+        _SESSIONS_SHOWN[key] = {}
+        weakref.finalize(viewer, _SESSIONS_SHOWN.pop, key, None)  # a viewer closed takes its sessions along
+    return _SESSIONS_SHOWN[key]
 
 
 CHIRALITY_CHOICES = (("auto", "auto"), ("same", "as the template / atlas"), ("mirrored", "mirrored"))
