@@ -108,3 +108,20 @@ def test_load_model_refuses_weights_that_are_not_finite(tmp_path):
     save_file(state, str(weights))
     with pytest.raises(ModelError, match="not finite"):
         load_model(path)
+
+
+def test_save_model_long_name_keeps_weights_and_config(tmp_path):
+    """save_model at a path whose stem has 40+ characters should write both files. Instead the
+    two temporary names ('.<name[:40]>.tmp') are one file: the JSON overwrites the weights,
+    the JSON is moved over the .safetensors, and the second replace fails (FileNotFoundError);
+    the model cannot be loaded."""
+    import torch
+
+    from napari_fdlc.model import CorrespondenceModel, load_model, save_model
+
+    torch.set_num_threads(1)
+    model = CorrespondenceModel({"dim": 8, "heads": 2, "layers": 1, "fourier_bands": 2})
+    path = tmp_path / ("identifier_trained_on_all_labs_seed7_" + "x" * 10)  # a 47-character stem
+    save_model(model, path)
+    loaded = load_model(path)
+    assert loaded.config["dim"] == 8

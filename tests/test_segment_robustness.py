@@ -421,3 +421,27 @@ def test_cli_segment_voxel_size_in_nm_by_mistake_is_not_silent(tmp_path, worm, c
     code = main(["segment", str(path), "--voxel-size", "1", "250", "250", "--quiet", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 2 or "voxel" in err.lower(), (code, err)
+
+
+def test_detect_nuclei_two_voxel_sizes_is_a_clear_error():
+    """A voxel size of two numbers should be refused as an ImageError ('give three positive
+    numbers', as _detect_nuclei says). Instead the new voxel-size check in
+    check_detection_options compares it with a 3-vector first: a numpy broadcasting ValueError
+    traceback."""
+    from napari_fdlc.io.images import ImageError
+    from napari_fdlc.segment import detect_nuclei
+
+    with pytest.raises(ImageError):
+        detect_nuclei(np.zeros((4, 8, 8), np.float32), (1.0, 0.5), diameter_um=3.0)
+
+
+def test_detect_nuclei_zero_diameter_blames_the_diameter():
+    """A nucleus diameter of 0 (or negative) should be refused as a bad diameter ('nucleus
+    diameter must be a number of µm above 0'). Instead the voxel-size check runs first and
+    says that the (fine) voxel size 1 × 0.5 × 0.5 µm is 'coarser than a nucleus of 0 µm ...
+    is it in µm (not nm)?', pointing at the wrong option."""
+    from napari_fdlc.io.images import ImageError
+    from napari_fdlc.segment import detect_nuclei
+
+    with pytest.raises(ImageError, match="diameter"):
+        detect_nuclei(np.zeros((4, 8, 8), np.float32), (1.0, 0.5, 0.5), diameter_um=0.0)

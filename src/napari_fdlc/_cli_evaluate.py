@@ -12,6 +12,7 @@ import os
 import shlex
 import sys
 import time
+from urllib.parse import quote
 from pathlib import Path
 
 import numpy as np
@@ -205,7 +206,7 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
         with atomic_write(out, "w", encoding="utf-8") as handle:
             handle.write("# Accuracy on the annotated corpus\n\n")
             handle.write(f"Made by `{command}` ({minutes:.1f} min). See docs/benchmarks.md for how to read it.\n\n")
-            handle.write(report + (f"\n\n![reliability]({plot})\n" if plotted else "\n"))
+            handle.write(report + (f"\n\n![reliability]({quote(plot)})\n" if plotted else "\n"))  # a name with spaces
     return report
 
 

@@ -269,8 +269,10 @@ def save_model(model: CorrespondenceModel, path: str | Path, card: dict | None =
     weights.parent.mkdir(parents=True, exist_ok=True)
     # Both files are written in full before either replaces the old one: an interruption while
     # writing leaves the old pair whole.
-    tmp = weights.with_name(f".{weights.name[:40]}.tmp")
-    json_tmp = config_path.with_name(f".{config_path.name[:40]}.tmp")
+    # short (a long file name leaves room for them) and each with its suffix: cut at 40 characters,
+    # a long stem made the two one file, and the JSON was written over the weights
+    tmp = weights.with_name(f".{weights.stem[:40]}{weights.suffix}.tmp")
+    json_tmp = config_path.with_name(f".{config_path.stem[:40]}{config_path.suffix}.tmp")
     try:
         save_file({k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}, str(tmp))
         plain_permissions(tmp)

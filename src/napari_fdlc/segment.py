@@ -126,18 +126,24 @@ def check_detection_options(diameter_um: float, threshold: float, names=("nucleu
     work: a diameter of metres would bin the stack away, slowly), or voxels coarser than a
     nucleus across (more than two in z): nm taken for µm found 382 'nuclei' among 20, silently,
     and 1e160 µm overflowed into a traceback. ``names`` say them as the caller's options."""
-    if voxel_size_zyx is not None:
-        widest = np.array([2.0, 1.0, 1.0]) * diameter_um
-        if np.any(np.asarray(voxel_size_zyx, dtype=float) > widest):
-            raise ImageError(f"voxel size {' × '.join(f'{v:g}' for v in voxel_size_zyx)} µm (z, y, x) is coarser than a "
-                             f"nucleus of {diameter_um:g} µm (at most {widest[0]:g} in z, {widest[1]:g} in y and x): "
-                             "no nucleus can be found at that sampling; is it in µm (not nm)?")
     if not (0 < diameter_um <= MAX_DIAMETER_UM):
         raise ImageError(f"{names[0]} must be a number of µm above 0 and at most {MAX_DIAMETER_UM:g} "
                          f"(C. elegans neuron nuclei are 2-4 µm; got {diameter_um})")
     if not (np.isfinite(threshold) and MIN_THRESHOLD <= threshold <= MAX_THRESHOLD):
         raise ImageError(f"{names[1]} must be a number of noise SDs from {MIN_THRESHOLD:g} to {MAX_THRESHOLD:g} "
                          f"(got {threshold}; below {MIN_THRESHOLD:g}, noise passes as nuclei)")
+    # after the diameter's own check (a diameter of 0 is not the voxels' fault); three numbers
+    # only (any other voxel size is refused, in its words, where it is read)
+    try:
+        voxel = np.asarray(voxel_size_zyx, dtype=float) if voxel_size_zyx is not None else None
+    except (TypeError, ValueError):
+        voxel = None
+    if voxel is not None and voxel.shape == (3,):
+        widest = np.array([2.0, 1.0, 1.0]) * diameter_um
+        if np.any(voxel > widest):
+            raise ImageError(f"voxel size {' × '.join(f'{v:g}' for v in voxel_size_zyx)} µm (z, y, x) is coarser than a "
+                             f"nucleus of {diameter_um:g} µm (at most {widest[0]:g} in z, {widest[1]:g} in y and x): "
+                             "no nucleus can be found at that sampling; is it in µm (not nm)?")
 
 
 def _bin_factors(voxel_size_zyx, diameter_um: float) -> tuple[int, int, int]:

@@ -292,3 +292,32 @@ def test_write_nwb_refuses_channel_names_that_do_not_fit_the_channels(tmp_path):
         write_tiff(tmp_path / "s.ome.tif", stack, channel_names=["a"])
     with pytest.raises(FdlcError):
         write_nwb(tmp_path / "s.nwb", stack, channel_names=["a"])
+
+
+def test_read_nwb_neurons_voxel_size_reads_colours_at_the_same_voxels(tmp_path):
+    """read_nwb_neurons(path, voxel_size=...) places the neurons on the image's voxels at the
+    given size ('the size the image is shown at'); the colours, read out of the image at each
+    neuron, should be the same whatever the size (the same voxels). Instead the colours are
+    measured in a stack read at the file's own voxel size, at positions scaled by the given
+    one: with a size twice the file's, every neuron's colour is read at twice its voxel index
+    (another place, or the image's edge)."""
+    from napari_fdlc.io.images import Stack
+    from napari_fdlc.io.nwb import read_nwb_neurons, write_nwb
+    from napari_fdlc.table import NeuronTable
+
+    data = np.full((4, 6, 16, 16), 100, np.uint16)
+    centres = [(1, 3, 3), (4, 12, 12), (2, 12, 3), (3, 3, 12)]  # z, y, x voxels
+    for k, (z, y, x) in enumerate(centres):
+        data[k % 4, z, y - 1:y + 2, x - 1:x + 2] = 3000  # each neuron bright in one channel
+        data[3, z, y - 1:y + 2, x - 1:x + 2] = 3000
+    stack = Stack(data, (1.0, 0.5, 0.5), ["R", "G", "B", "W"],
+                  channel_names=["mNeptune2.5", "CyOFP1.5", "mTagBFP2", "TagRFP-T"])
+    vox = np.array([0.5, 0.5, 1.0])  # x, y, z
+    neurons = NeuronTable(xyz=np.array([[x, y, z] for z, y, x in centres], float) * vox)
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, stack, neurons)
+    own = read_nwb_neurons(path)
+    given = read_nwb_neurons(path, voxel_size=(2.0, 1.0, 1.0))
+    np.testing.assert_allclose(given.xyz, own.xyz * 2)  # the positions follow the size given
+    for c in ("R", "G", "B"):
+        np.testing.assert_allclose(given.colours[c], own.colours[c], atol=1e-6)

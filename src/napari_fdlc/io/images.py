@@ -662,7 +662,7 @@ def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None, li
             names = list(labels[:n_c])  # ImageJ stores one label per plane, channel fastest
         elif isinstance(labels, list) and n_c == 1 and labels and len(set(labels)) == 1:
             names = [labels[0]]  # one channel: every plane carries its name (as write_tiff writes it)
-        written = str((meta.get("Properties") or {}).get(IMAGEJ_ROLES, "")).split(",")
+        written = [r.strip() for r in str((meta.get("Properties") or {}).get(IMAGEJ_ROLES, "")).split(",")]
         roles = [r if r in ROLES else None for r in written] if len(written) == n_c else None
         return [z, y, x], names, roles if roles and any(roles) else None
     return None, None, None

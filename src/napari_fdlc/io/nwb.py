@@ -85,7 +85,7 @@ def _find_image(nwb):
     for module in nwb.processing.values():
         candidates += _children(module)
     with_data = [(n, o) for n, o in candidates if getattr(getattr(o, "data", None), "ndim", 0) in (3, 4)]
-    for name, obj in with_data:  # prefer NeuroPAL-ish names, then any volume
+    for name, obj in with_data:  # NeuroPAL-named ones only (an image first)
         if "neuropal" in name.lower() and "image" in name.lower():
             return obj
     for name, obj in with_data:
@@ -362,7 +362,7 @@ def read_nwb_neurons(path: str | os.PathLike, colours: bool = True,
     if colours:
         from ..segment import measure_colours
 
-        stack = read_nwb(path)
+        stack = read_nwb(path, voxel_size=voxel_size)  # the colours read on the voxels the positions were put on
         table.colours = measure_colours(stack, table.xyz)
     return table
 
