@@ -18,6 +18,7 @@ from napari_fdlc.track import (SequenceParams, TrackResult, TrackSettings, join_
                                  tracking_accuracy)
 import re
 from pathlib import Path
+from napari_fdlc.reference import generate_worm
 
 GENTLE = SequenceParams(frames=4, bend_curvature=0.002, roll=0.05, xy_rotation=0.3, drift_um=4.0,
                         drop_fraction=(0.0, 0.05), max_spurious=4, jitter_um=0.2)
@@ -526,3 +527,33 @@ def test_residual_ratio_range_in_the_message_is_what_is_accepted():
         TrackSettings(residual_ratio=float("inf")).check()
     except FdlcError as error:
         assert "to inf" not in str(error), str(error)
+
+
+GENTLE_h = SequenceParams(frames=3, bend_curvature=0.002, roll=0.05, xy_rotation=0.2, drift_um=2.0,
+                        drop_fraction=(0.0, 0.0), max_spurious=0, jitter_um=0.1)
+
+
+@pytest.fixture(scope="module")
+def small_worm():
+    """30 neighbouring neurons of a generated worm (a small, quick recording)."""
+    worm = generate_worm(seed=1)
+    return worm.subset(np.sort(np.argsort(worm.xyz[:, 0])[:30]))
+
+
+@pytest.mark.parametrize("option", [["--voxel-size", "2", "0.5", "0.5"], ["--diameter-um", "5"],
+                                    ["--channels", "R", "G", "B", "W"], ["--axes", "TZCYX"]],
+                         ids=["voxel-size", "diameter-um", "channels", "axes"])
+def test_image_options_on_a_table_sequence_are_not_ignored_silently(tmp_path, small_worm, capsys, option):
+    """`fdlc track` takes the `fdlc segment` options for an image recording. Given with a table
+    sequence (a CSV with a t column), where they cannot apply, they should be refused or said to
+    be ignored in one line, as the model options ignored by --method cpd/geometry are
+    (tests/test_track_edges.py::test_model_options_ignored_by_a_baseline_say_so): a user whose
+    CSV is in pixels and who adds `--voxel-size` expects µm. Instead _cli_track.run drops them
+    without a word (the output is byte-identical to a run without them, exit 0, stderr empty)."""
+    volumes, _ = simulate_sequence(small_worm, 1, GENTLE_h)
+    src = tmp_path / "seq.csv"
+    write_table(join_by_time(volumes).drop(columns=["label"]), src)
+    out = tmp_path / "tracks.csv"
+    code = main(["track", str(src), "--method", "geometry", "--quiet", *option, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 or option[0] in err, (code, err)

@@ -23,6 +23,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
 
+# The options of add_stack_arguments with their defaults: fdlc track says which of them a table
+# sequence, which is not segmented, ignores.
+STACK_DEFAULTS = {"--voxel-size": ("voxel_size", None), "--channels": ("channels", None), "--axes": ("axes", None),
+                  "--diameter-um": ("diameter_um", 3.0), "--threshold": ("threshold", 6.0),
+                  "--no-unmix": ("no_unmix", False), "--no-colour-split": ("no_colour_split", False)}
+
+
 def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
     """How to read a stack and find its nuclei (``fdlc segment``, and ``fdlc track`` on a recording)."""
     parser.add_argument(
@@ -35,9 +42,9 @@ def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
         "(default: from the channel names in the file)",
     )
     parser.add_argument("--axes", help="axes of a TIFF that does not record them, e.g. ZCYX or TZCYX")
-    parser.add_argument("--diameter-um", type=float, default=3.0, help="typical nucleus diameter in µm (default 3)")
+    parser.add_argument("--diameter-um", type=float, default=STACK_DEFAULTS["--diameter-um"][1], help="typical nucleus diameter in µm (default 3)")
     parser.add_argument(
-        "--threshold", type=float, default=6.0,
+        "--threshold", type=float, default=STACK_DEFAULTS["--threshold"][1],
         help="minimum detection strength in noise SDs (default 6; lower finds dimmer nuclei)",
     )
     parser.add_argument(
@@ -48,6 +55,11 @@ def add_stack_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-colour-split", action="store_true",
         help="find nuclei on W alone (by default a touching nucleus that only R, G or B separates is added)",
     )
+
+
+def stack_options_given(args: argparse.Namespace) -> list[str]:
+    """The options of :func:`add_stack_arguments` given other than their defaults."""
+    return [flag for flag, (name, default) in STACK_DEFAULTS.items() if getattr(args, name, default) != default]
 
 
 def segment_recording(args: argparse.Namespace, path: str, prog: str, check=None) -> tuple[list[int], list, int]:

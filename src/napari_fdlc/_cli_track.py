@@ -109,6 +109,11 @@ def run(args: argparse.Namespace) -> int:
             follower = Identifier.load(args.tracking_weights)
     recording = _image_recording(args.inputs)
     if recording is None:
+        from ._cli_segment import stack_options_given
+
+        ignored = stack_options_given(args)
+        if ignored:  # a table in pixels is not converted by --voxel-size: said, not silently dropped
+            warn(f"{', '.join(ignored)}: for an image recording (segmented first); ignored with a table sequence")
         seq = read_sequence(args.inputs)
     else:
         from ._cli_segment import segment_recording
