@@ -461,24 +461,6 @@ def test_a_reference_that_is_the_first_volume_is_warned_of_once(tmp_path, gentle
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "tracking.md"
 
 
-@pytest.fixture(scope="module")
-def shipped():
-    import torch
-
-    from napari_fdlc.identify import Identifier
-
-    torch.set_num_threads(1)
-    return Identifier.load(device="cpu")
-
-
-def _per_volume_h(result, origins, reference_origin):
-    where = {o: i for i, o in enumerate(reference_origin) if o >= 0}
-    out = []
-    for tid, origin in zip(result.track_id, origins):
-        truth = np.array([where.get(o, -1) if o >= 0 else -1 for o in origin])
-        has = truth >= 0
-        out.append(float((tid[has] == truth[has]).mean()))
-    return np.round(out, 2)
 
 
 GENTLE_8 = replace(GENTLE, frames=8)
@@ -505,7 +487,7 @@ def test_a_jump_in_the_first_chained_volumes_is_searched_again(worm, shipped, ju
     volumes, origins = simulate_sequence(worm, seed, params)
     volumes = [v if k < at else JUMPS[jump](v) for k, v in enumerate(volumes)]
     result = track(volumes, identifier=shipped, settings=TrackSettings(use_colour=False))
-    per = _per_volume_h(result, origins, origins[0])
+    per = np.round(_per_volume(result, origins, origins[0]), 2)
     assert min(per[at:]) >= 0.9, (per.tolist(), [i["searched"] for i in result.info])
 
 
@@ -529,7 +511,7 @@ def test_residual_ratio_range_in_the_message_is_what_is_accepted():
         assert "to inf" not in str(error), str(error)
 
 
-GENTLE_h = SequenceParams(frames=3, bend_curvature=0.002, roll=0.05, xy_rotation=0.2, drift_um=2.0,
+QUIET = SequenceParams(frames=3, bend_curvature=0.002, roll=0.05, xy_rotation=0.2, drift_um=2.0,
                         drop_fraction=(0.0, 0.0), max_spurious=0, jitter_um=0.1)
 
 
@@ -550,7 +532,7 @@ def test_image_options_on_a_table_sequence_are_not_ignored_silently(tmp_path, sm
     (tests/test_track_edges.py::test_model_options_ignored_by_a_baseline_say_so): a user whose
     CSV is in pixels and who adds `--voxel-size` expects µm. Instead _cli_track.run drops them
     without a word (the output is byte-identical to a run without them, exit 0, stderr empty)."""
-    volumes, _ = simulate_sequence(small_worm, 1, GENTLE_h)
+    volumes, _ = simulate_sequence(small_worm, 1, QUIET)
     src = tmp_path / "seq.csv"
     write_table(join_by_time(volumes).drop(columns=["label"]), src)
     out = tmp_path / "tracks.csv"
