@@ -718,29 +718,6 @@ def test_nwb_grid_spacing_in_british_spelled_units_is_read(tmp_path, unit, value
     assert read_stack(path).voxel_size_zyx == pytest.approx((1.5, 0.25, 0.3))
 
 
-class _FakeND2:
-    """The part of nd2.ND2File that read_nd2 uses."""
-
-    def __init__(self, data, sizes, voxel, names):
-        self._data, self.sizes, self.dtype, self._voxel = data, sizes, data.dtype, voxel
-        self.metadata = SimpleNamespace(channels=[SimpleNamespace(channel=SimpleNamespace(name=n)) for n in names])
-
-    def voxel_size(self, channel=0):
-        x, y, z = self._voxel
-        return SimpleNamespace(x=x, y=y, z=z)
-
-    def asarray(self):
-        return self._data
-
-    def to_dask(self):
-        import dask.array as da
-
-        return da.from_array(self._data)
-
-    def close(self):
-        pass
-
-
 @pytest.mark.parametrize("z", [0.0, float("nan")], ids=["zero", "nan"])
 def test_nd2_without_a_z_step_asks_for_the_voxel_size(tmp_path, z):
     """Expected: an ND2 whose z step is 0 or NaN (no calibrated Z loop) is a missing voxel size:
@@ -749,7 +726,7 @@ def test_nd2_without_a_z_step_asks_for_the_voxel_size(tmp_path, z):
     which does not say what to do and makes napari refuse the file instead of opening it in
     pixels. Cause: read_nd2 passes the reported z through; only x = y = 1 is taken as unknown."""
     data = np.ones((5, 2, 16, 16), np.uint16)
-    fake = _FakeND2(data, {"Z": 5, "C": 2, "Y": 16, "X": 16}, (0.3, 0.3, z), ("TagRFP-T", "mNeptune2.5"))
+    fake = FakeND2(data, {"Z": 5, "C": 2, "Y": 16, "X": 16}, (0.3, 0.3, z), ("TagRFP-T", "mNeptune2.5"))
     with pytest.raises(ImageError) as exc:
         read_nd2(tmp_path / "w.nd2", opener=lambda p: fake)
     message = _one_line(exc.value)
