@@ -10,7 +10,8 @@ segmentation noise (no drops, spurious points or jitter): the segmentation makes
 volume is rendered (``render.render_recording``: the renderer's default noise, a neuron keeping
 its size and brightness over time, each time point its own photon noise), segmented as ``fdlc
 segment`` does (``segment.segment_series``) and tracked as ``fdlc track RECORDING.ome.tif``
-does. A detection stands for the true neuron within 1.5 µm of it (the nearest); accuracy =
+does. A detection stands for a true neuron within 1.5 µm of it (one-to-one: the most pairs
+within reach, ``detection_sources``); accuracy =
 fraction of the detections whose neuron was detected in the reference (the first volume) that
 get that detection's track ID; "untracked right" = fraction of the other detections (spurious,
 or a neuron the reference missed) left untracked; "found" = fraction of the true neurons

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from napari_fdlc.errors import FdlcError
+from napari_fdlc.errors import FdlcError, ModelError
 from napari_fdlc.geometry import canonical_frame
 from napari_fdlc.identify import FEW_NEURONS, Identifier, label_neurons
 from napari_fdlc.model import CorrespondenceModel
@@ -978,3 +978,10 @@ def test_identifier_given_a_weights_path_is_refused_clearly():
 
     with pytest.raises(MISUSE):
         Identifier(shipped_weights(), device="cpu")
+
+
+def test_a_device_that_cannot_run_the_model_is_a_model_error(untrained_weights):
+    """Identifier.load(device='tpu') (or 'cuda' without one) is refused as a ModelError naming the
+    device; it was torch's RuntimeError (AssertionError for cuda) from deep inside."""
+    with pytest.raises(ModelError, match="device 'tpu'"):
+        Identifier.load(untrained_weights, device="tpu")

@@ -539,3 +539,22 @@ def test_image_options_on_a_table_sequence_are_not_ignored_silently(tmp_path, sm
     code = main(["track", str(src), "--method", "geometry", "--quiet", *option, "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 2 or option[0] in err, (code, err)
+
+
+def test_a_reference_t_left_out_of_a_recording_is_said_so(tmp_path, small_worm, capsys):
+    """`fdlc track rec.ome.tif --reference-t 1` where time point 1 holds no nucleus (left out):
+    one line saying so, exit 2. It said "no time point 1 in the sequence", of a recording that
+    has one."""
+    from napari_fdlc.io.images import StackSeries, write_tiff
+    from napari_fdlc.render import render_recording
+
+    volumes, origins = simulate_sequence(small_worm, 1, QUIET)
+    series, _ = render_recording(volumes, origins, seed=0)
+    data = np.array(series.data)
+    data[1] = 0  # out of focus: nothing to find
+    path = tmp_path / "rec.ome.tif"
+    write_tiff(path, StackSeries(data, series.voxel_size_zyx, series.channel_roles, str(path), series.channel_names))
+    code = main(["track", str(path), "--reference-t", "1", "--method", "geometry", "--quiet",
+                 "--out", str(tmp_path / "tracks.csv")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "no nucleus was found at that time point" in err[-1], err

@@ -127,6 +127,10 @@ def run(args: argparse.Namespace) -> int:
 
         times, volumes, _ = segment_recording(args, recording, "fdlc track", check=time_points_exist)
         seq = Sequence(volumes, times, [""] * len(volumes))
+        for kind, raw in in_order:  # a frame of the recording, but left out: said so, not "no time point"
+            if kind == "reference_t" and _reference_time(raw) not in times:
+                raise FdlcError(f"--reference-t {raw}: no nucleus was found at that time point of the recording "
+                                "(it is left out); choose another")
     references = [from_file[k] if kind == "reference" else _volume_at(seq, raw) for k, (kind, raw) in enumerate(in_order)]
     # a reference that is the first volume itself is warned of once
     warn_implausible_scales([seq.volumes[0], *(r for r in references if r is not seq.volumes[0])])

@@ -219,7 +219,10 @@ class Identifier:
         self.device = device or ("cuda" if torch.cuda.is_available() else "cpu")
         if isinstance(model, (str, os.PathLike)):
             raise TypeError(f"Identifier takes a loaded model; for weights on disk use Identifier.load({str(model)!r})")
-        self.model = model.to(self.device).eval() if model is not None else None
+        try:
+            self.model = model.to(self.device).eval() if model is not None else None
+        except (RuntimeError, ValueError, AssertionError) as exc:  # e.g. device="tpu", or "cuda" on a machine without one
+            raise ModelError(f"device '{self.device}' cannot run the model ({_first_line(exc)}); use cpu or cuda") from None
         self.settings = settings or InferenceSettings()
         self._traced: dict = {}  # see _model_pass; shared with copies made by with_settings
         self._mean_worm: tuple = (None, None)  # (atlas, its mean worm) for _atlas_worm_answer
@@ -1004,6 +1007,11 @@ def decide_handedness(willingness, registration=None) -> tuple[str | None, int, 
         if n and binomtest(k, n, 0.5, alternative=side).pvalue < BATCH_HANDEDNESS_P:
             return decided, k, n
     return None, k, n
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
 
 
 def _need_tables(test, templates) -> None:
