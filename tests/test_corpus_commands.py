@@ -15,14 +15,13 @@ import pytest
 from napari_fdlc.cli import main
 from napari_fdlc.corpus import Worm, load_corpus
 from napari_fdlc.errors import FdlcError
-from napari_fdlc.reference import build_atlas, generate_worm
+from napari_fdlc.reference import atlas_worm, build_atlas, generate_worm, load_atlas
 from napari_fdlc.table import NeuronTable, write_table
 import os
 import shlex
 import subprocess
 import sys
 from dataclasses import replace
-from napari_fdlc.reference import atlas_worm, load_atlas
 
 FAST = ("--pairs-per-lab", "1", "--panel-worms-per-lab", "0", "--synthetic-pairs", "0", "--no-cpd")
 
@@ -220,9 +219,6 @@ def test_evaluate_on_a_corpus_of_one_lab_says_why_it_cannot(tmp_path, write_corp
     assert code == 0 or ("MINE" in err or "other lab" in err), err
 
 
-FAST_h = ("--pairs-per-lab", "1", "--panel-worms-per-lab", "0", "--synthetic-pairs", "0", "--no-cpd")
-
-
 @pytest.fixture(scope="module")
 def corpus(tmp_path_factory, write_corpus) -> Path:
     worms = {lab: [generate_worm(seed=700 + 3 * k + i) for i in range(3)] for k, lab in enumerate(("NP", "EY"))}
@@ -285,7 +281,7 @@ def test_evaluate_labs_are_matched_as_the_corpus_is_read(tmp_path, corpus, untra
     Actual: evaluate_corpus compares the labs unstripped with the corpus's: exit 2,
     "no worms of lab(s)  NP in the corpus"."""
     out = tmp_path / "acc.md"
-    code = run("evaluate", "--corpus", corpus, "--labs", " NP", *FAST_h, "--weights", untrained_weights, "--out", out)
+    code = run("evaluate", "--corpus", corpus, "--labs", " NP", *FAST, "--weights", untrained_weights, "--out", out)
     assert code == 0, capsys.readouterr().err
 
 
@@ -301,7 +297,7 @@ def test_evaluate_made_by_line_reproduces_a_corpus_path_with_a_space(tmp_path, w
     folder = write_corpus(tmp_path / "my corpus", {lab: [generate_worm(seed=800 + 3 * k + i) for i in range(2)]
                                                    for k, lab in enumerate(("NP", "EY"))})
     out = tmp_path / "acc.md"
-    assert run("evaluate", "--corpus", folder, "--labs", "NP", *FAST_h, "--weights", untrained_weights, "--out", out) == 0
+    assert run("evaluate", "--corpus", folder, "--labs", "NP", *FAST, "--weights", untrained_weights, "--out", out) == 0
     made_by = next(line for line in out.read_text().splitlines() if line.startswith("Made by"))
     argv = shlex.split(made_by.split("`")[1])
     assert argv[argv.index("--corpus") + 1] == str(folder), argv
@@ -316,7 +312,7 @@ def test_evaluate_where_the_other_labs_are_too_few_for_an_atlas_says_so(tmp_path
     worms, naming neither the lab nor that the other labs are meant."""
     folder = write_corpus(tmp_path / "corpus", {"NP": [generate_worm(seed=s) for s in (1, 2, 3)],
                                                 "EY": [generate_worm(seed=4)]})
-    code = run("evaluate", "--corpus", folder, "--labs", "NP", *FAST_h, "--weights", untrained_weights,
+    code = run("evaluate", "--corpus", folder, "--labs", "NP", *FAST, "--weights", untrained_weights,
                "--out", tmp_path / "acc.md")
     err = capsys.readouterr().err
     assert code == 0 or "NP" in err or "other lab" in err, err
@@ -338,7 +334,7 @@ def test_evaluate_through_a_link_puts_the_plot_beside_the_report(tmp_path, corpu
     link = tmp_path / "links" / "acc.md"
     link.parent.mkdir()
     link.symlink_to(real)
-    assert run("evaluate", "--corpus", corpus, "--labs", "NP", *FAST_h, "--weights", untrained_weights, "--out", link) == 0
+    assert run("evaluate", "--corpus", corpus, "--labs", "NP", *FAST, "--weights", untrained_weights, "--out", link) == 0
     assert "images/acc_calibration.png" in real.read_text()
     assert plotted == [real.parent / "images" / "acc_calibration.png"], plotted
 
@@ -350,9 +346,9 @@ def test_a_second_report_in_one_folder_does_not_replace_the_first_reports_plot(t
     Actual: every report's plot is images/calibration.png beside it, so the second run silently
     replaces the first report's plot with its own: a.md now shows another run's reliability."""
     first, second = tmp_path / "a.md", tmp_path / "b.md"
-    assert run("evaluate", "--corpus", corpus, "--labs", "NP", *FAST_h, "--weights", untrained_weights, "--out", first) == 0
+    assert run("evaluate", "--corpus", corpus, "--labs", "NP", *FAST, "--weights", untrained_weights, "--out", first) == 0
     plot = tmp_path / "images" / "a_calibration.png"
     assert plot.exists() and "images/a_calibration.png" in first.read_text()
     before = plot.read_bytes()
-    assert run("evaluate", "--corpus", corpus, "--labs", "EY", *FAST_h, "--weights", untrained_weights, "--out", second) == 0
+    assert run("evaluate", "--corpus", corpus, "--labs", "EY", *FAST, "--weights", untrained_weights, "--out", second) == 0
     assert plot.read_bytes() == before, "the first report's plot was replaced by the second run's"

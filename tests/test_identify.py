@@ -13,11 +13,10 @@ import torch
 
 from napari_fdlc.errors import FdlcError, ModelError
 from napari_fdlc.geometry import canonical_frame
-from napari_fdlc.identify import FEW_NEURONS, Identifier, label_neurons
+from napari_fdlc.identify import FEW_NEURONS, Identifier, default_identifier, label_neurons
 from napari_fdlc.model import CorrespondenceModel
 from napari_fdlc.reference import generate_worm, load_atlas, load_panel
 from napari_fdlc.table import NeuronTable
-from napari_fdlc.identify import default_identifier
 
 
 SEEDS = (3, 4, 5, 6)
@@ -33,10 +32,14 @@ def panel():
     return load_panel()
 
 
+def _unnamed_worm(seed: int) -> NeuronTable:
+    w = generate_worm(seed=seed)
+    return NeuronTable(w.xyz, w.colours, source="test")  # unnamed: a table to be named
+
+
 @pytest.fixture(scope="module")
 def test_worm():
-    w = generate_worm(seed=1)
-    return NeuronTable(w.xyz, w.colours, source="test")  # unnamed: a table to be named
+    return _unnamed_worm(1)
 
 
 @pytest.fixture(scope="module")
@@ -446,14 +449,7 @@ def test_a_view_into_the_body_is_named_in_its_head_only(worm):
 
 def _long_test() -> NeuronTable:
     """A head plus 80 neurons reaching far into the body: named in its head window only."""
-    w = generate_worm(seed=1)
-    head = canonical_frame(w.xyz)[0]
-    length = np.ptp(head[:, 0])
-    rng = np.random.default_rng(0)
-    body = np.column_stack([rng.uniform(head[:, 0].max() + 5, head[:, 0].max() + 2 * length, 80),
-                            rng.normal(0, 3, 80), rng.normal(0, 3, 80)])
-    colours = {c: np.concatenate([v, rng.choice(v, 80)]) for c, v in w.colours.items()}
-    return NeuronTable(np.vstack([head, body]), colours, source="long")
+    return _head_and_body(1)
 
 
 @pytest.mark.parametrize("reference", ["panel", "template"])
@@ -863,8 +859,7 @@ def ident():
 
 @pytest.fixture(scope="module")
 def test_table_2():
-    w = generate_worm(seed=5)
-    return NeuronTable(w.xyz, w.colours, source="test")  # unnamed: a table to be named
+    return _unnamed_worm(5)
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,7 @@ from napari_fdlc.cli import main
 from napari_fdlc.label import labelling_frame
 from napari_fdlc.match import Labelling
 from napari_fdlc.sample import sample_paths
-from napari_fdlc.table import NeuronTable, write_table
-from napari_fdlc.table import write_neuropal_id
+from napari_fdlc.table import NeuronTable, write_neuropal_id, write_table
 
 
 def run(*args):

@@ -5,8 +5,15 @@ import pytest
 
 from napari_fdlc.errors import FdlcError
 
-from napari_fdlc.match import assign, make_labelling, min_cost_matching, name_probabilities, one_to_one, top_k
-from napari_fdlc.match import assign_log
+from napari_fdlc.match import (
+    assign,
+    assign_log,
+    make_labelling,
+    min_cost_matching,
+    name_probabilities,
+    one_to_one,
+    top_k,
+)
 
 
 def brute_force(probs, weight=1.0):

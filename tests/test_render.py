@@ -8,12 +8,11 @@ from scipy.spatial.distance import pdist
 
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.io.images import ImageError
-from napari_fdlc.render import align_worm, colour_intensities, random_worm, render_stack, spread_apart
+from napari_fdlc.render import align_worm, colour_intensities, random_worm, render_recording, render_stack, spread_apart
 from napari_fdlc.table import NeuronTable
 import subprocess
 import sys
 import textwrap
-from napari_fdlc.render import render_recording
 
 # Small, coarse stacks: a few thousand voxels each.
 SMALL = dict(margin_um=(2.0, 3.0, 3.0), voxel_size_zyx=(1.0, 0.5, 0.5), gut=False)
@@ -250,9 +249,6 @@ def test_random_worm_that_cannot_be_made_is_an_fdlc_error():
             random_worm(*args)
 
 
-SMALL_h = dict(margin_um=(2.0, 3.0, 3.0), voxel_size_zyx=(1.0, 0.5, 0.5), gut=False)
-
-
 ANTERIOR = ("I1", "I2", "I3", "MC", "M1", "M2", "M3", "M4", "M5", "MI", "NSM", "IL1", "IL2", "OLQ", "OLL",
             "URA", "URB", "URY", "CEP")
 
@@ -266,7 +262,7 @@ def test_truth_carries_the_colours_that_were_rendered_for_a_partial_colour_table
     input G and B are thrown away and replaced by rendered intensities."""
     worm = random_worm(10, size_um=(20, 8, 6), seed=1)
     table = NeuronTable(worm.xyz, {c: worm.colours[c] for c in given})
-    _, truth = render_stack(table, seed=0, **SMALL_h)
+    _, truth = render_stack(table, seed=0, **SMALL)
     assert {"R", "G", "B"} <= set(truth.colours), sorted(truth.colours)
     for c in given:
         np.testing.assert_allclose(truth.colours[c], worm.colours[c], err_msg=f"input {c} not kept")
@@ -283,7 +279,7 @@ def test_recording_with_fewer_identity_arrays_than_volumes_is_refused():
     a volume, instead of an ImageError."""
     volumes, identities = _recording(3)
     with pytest.raises(ImageError):
-        series, truths = render_recording(volumes, identities[:2], **SMALL_h)
+        series, truths = render_recording(volumes, identities[:2], **SMALL)
         pytest.fail(f"rendered {len(series)} time points for 3 volumes")
 
 
@@ -295,7 +291,7 @@ def test_recording_settings_that_cannot_be_rendered_are_one_image_error(settings
     them and fails with numpy's bare ValueError 'operands could not be broadcast together'."""
     volumes, identities = _recording(2)
     with pytest.raises(ImageError):
-        render_recording(volumes, identities, **{**SMALL_h, **settings})
+        render_recording(volumes, identities, **{**SMALL, **settings})
 
 
 def test_recording_with_an_empty_volume_is_one_image_error():
@@ -306,7 +302,7 @@ def test_recording_with_an_empty_volume_is_one_image_error():
     volumes = volumes + [NeuronTable(np.zeros((0, 3)))]
     identities = identities + [np.zeros(0, dtype=int)]
     with pytest.raises(ImageError):
-        render_recording(volumes, identities, **SMALL_h)
+        render_recording(volumes, identities, **SMALL)
 
 
 def _run_limited(code: str) -> subprocess.CompletedProcess:
@@ -343,5 +339,5 @@ def test_positions_far_too_large_are_refused_not_rendered_into_a_tiny_empty_stac
     an empty truth is returned silently."""
     worm = random_worm(6, size_um=(16, 8, 6), seed=1)
     with pytest.raises(ImageError):
-        stack, truth = render_stack(NeuronTable(worm.xyz * 1e20, worm.colours), **SMALL_h)
+        stack, truth = render_stack(NeuronTable(worm.xyz * 1e20, worm.colours), **SMALL)
         pytest.fail(f"rendered a {stack.data.shape} stack with {len(truth)} of 6 neurons")

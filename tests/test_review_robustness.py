@@ -18,10 +18,16 @@ import pytest
 
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.match import make_labelling
-from napari_fdlc.review import Decision, ReviewSession, carry_decisions, find_session, session_file_for, set_aside
-from napari_fdlc.table import NeuronTable, read_table
-from napari_fdlc.review import SESSION_SUFFIX
-from napari_fdlc.table import UNSURE_CONF
+from napari_fdlc.review import (
+    Decision,
+    ReviewSession,
+    SESSION_SUFFIX,
+    carry_decisions,
+    find_session,
+    session_file_for,
+    set_aside,
+)
+from napari_fdlc.table import NeuronTable, UNSURE_CONF, read_table
 
 NAMES = ["AVAL", "AVAR", "RMDL", "RMDR", "SMDVL"]
 VOXEL = (1.0, 0.25, 0.25)
@@ -468,22 +474,6 @@ def test_a_session_with_a_zero_voxel_size_is_refused_or_reloads(tmp_path):
     assert ReviewSession.load(path).status[0] == "accepted"
 
 
-NAMES_h = ["AVAL", "AVAR", "RMDL", "RMDR", "SMDVL"]
-
-
-VOXEL_h = (1.0, 0.25, 0.25)
-
-
-PROBS_h = np.array(
-    [
-        [0.90, 0.05, 0.02, 0.01, 0.01],
-        [0.10, 0.70, 0.10, 0.05, 0.00],
-        [0.05, 0.30, 0.60, 0.05, 0.00],
-        [0.00, 0.00, 0.10, 0.50, 0.35],
-    ]
-)
-
-
 def _write(tmp_path, d: dict, name: str = "worm.tif" + SESSION_SUFFIX, encoding: str = "utf-8"):
     path = tmp_path / name
     path.write_text(json.dumps(d), encoding=encoding)
@@ -616,7 +606,7 @@ def test_a_session_made_as_the_module_docstring_shows_is_found_again_after_a_fai
     image = tmp_path / "worm.tif"
     image.write_bytes(b"II*\x00")
     path = session_file_for(image)
-    s = ReviewSession(_table(), make_labelling(NAMES_h, PROBS_h), path=path)
+    s = ReviewSession(_table(), make_labelling(NAMES, PROBS), path=path)
     s.accept(0)
     real_replace = os.replace
 

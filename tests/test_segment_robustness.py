@@ -316,9 +316,6 @@ def test_cli_segment_does_not_find_nuclei_in_a_channel_given_as_ignored(tmp_path
     assert not out.exists()
 
 
-VOX_h = (1.0, 0.25, 0.25)
-
-
 @pytest.fixture(scope="module")
 def worm():
     """20 well-spaced nuclei, 4 x 15 x 90 x 124 uint16 (segment_stack finds all 20)."""
@@ -332,10 +329,10 @@ def _balls(centres_um, radius_um, peak, shape=(16, 96, 96), seed=0):
     z, y, x = np.ogrid[: shape[0], : shape[1], : shape[2]]
     inside = np.zeros(shape, bool)
     for c in centres_um:
-        c = np.asarray(c) / VOX_h
-        r = np.sqrt(((z - c[0]) * VOX_h[0]) ** 2 + ((y - c[1]) * VOX_h[1]) ** 2 + ((x - c[2]) * VOX_h[2]) ** 2)
+        c = np.asarray(c) / VOX
+        r = np.sqrt(((z - c[0]) * VOX[0]) ** 2 + ((y - c[1]) * VOX[1]) ** 2 + ((x - c[2]) * VOX[2]) ** 2)
         inside |= r <= radius_um
-    blob = ndimage.gaussian_filter(inside.astype(float), (0.7 / VOX_h[0], 0.15 / VOX_h[1], 0.15 / VOX_h[2]))
+    blob = ndimage.gaussian_filter(inside.astype(float), (0.7 / VOX[0], 0.15 / VOX[1], 0.15 / VOX[2]))
     blob /= blob.max()
     return np.random.default_rng(seed).poisson(100 + peak * blob).astype(float)
 
@@ -367,9 +364,9 @@ def test_two_saturated_nuclei_stacked_in_z_stay_two():
     them where there is none."""
     centres = [(6.0, 12.0, 12.0), (10.0, 12.0, 12.0)]
     plain = _balls(centres, 1.3, 3 * 3995)
-    assert len(segment_stack(Stack(plain[None], VOX_h, ["W"]))) == 2  # unclipped: two
+    assert len(segment_stack(Stack(plain[None], VOX, ["W"]))) == 2  # unclipped: two
     clipped = np.minimum(plain, 4095).astype(np.uint16)
-    found = segment_stack(Stack(clipped[None], VOX_h, ["W"]))
+    found = segment_stack(Stack(clipped[None], VOX, ["W"]))
     zyx = found.xyz[:, ::-1]
     assert len(found) == 2, np.round(zyx, 2).tolist()
     nearest = np.linalg.norm(zyx[:, None] - np.array(centres)[None], axis=2).min(axis=0)
@@ -387,7 +384,7 @@ def test_a_saturated_nucleus_is_placed_at_its_plateau_s_centre(over):
     target of 0.5 µm."""
     centre = np.array([8.0, 12.1, 12.05])
     clipped = np.minimum(_balls([centre], 1.5, over * 3995), 4095).astype(np.uint16)
-    found = segment_stack(Stack(clipped[None], VOX_h, ["W"]))
+    found = segment_stack(Stack(clipped[None], VOX, ["W"]))
     assert len(found) == 1
     error = np.linalg.norm(found.xyz[0, ::-1] - centre)
     assert error < 0.3, f"centre {error:.2f} µm off"

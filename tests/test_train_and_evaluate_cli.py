@@ -724,7 +724,6 @@ def test_handedness_of_three_named_neurons_says_too_few_names(tmp_path, capsys):
 # Session 32 (a helper review of fdlc train)
 
 
-
 @pytest.mark.parametrize("flags, overrides", [
     ((), {"val_worms_per_lab": 0}),
     (("--train-labs", "NP", "--val-labs", "EY"), {}),
@@ -829,10 +828,6 @@ def test_resume_does_not_take_the_device_the_checkpoint_trained_on(stopped_run, 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-TINY_h = {"model": {"layers": 1, "dim": 32}, "steps": 3, "batch_size": 2, "eval_every": 3,
-        "val_pairs_per_lab": 1, "val_worms_per_lab": 1, "max_neurons": 40}
-
-
 @pytest.fixture(scope="module")
 def corpus(tmp_path_factory, write_corpus) -> Path:
     worms = {lab: [generate_worm(seed=100 + 3 * k + i) for i in range(3)] for k, lab in enumerate(("NP", "EY"))}
@@ -865,8 +860,8 @@ def test_calibrate_only_uses_the_threads_it_is_given(tmp_path, corpus, monkeypat
     from napari_fdlc.train import TrainConfig
 
     out = tmp_path / "ck" / "model"
-    cfg = TrainConfig(corpus=str(corpus), out=str(out), **TINY_h)
-    save_model(CorrespondenceModel(TINY_h["model"]), out, {"train_config": cfg.to_json(), "best_step": 3})
+    cfg = TrainConfig(corpus=str(corpus), out=str(out), **TINY)
+    save_model(CorrespondenceModel(TINY["model"]), out, {"train_config": cfg.to_json(), "best_step": 3})
     seen = {}
 
     def fake_calibrate(*args, **kwargs):
@@ -890,7 +885,7 @@ def test_train_refuses_a_thread_count_torch_cannot_take_in_one_line(tmp_path, co
     (exit 1)."""
     _no_training(monkeypatch)
     config = tmp_path / "tiny.json"
-    config.write_text(json.dumps(TINY_h))
+    config.write_text(json.dumps(TINY))
     try:
         rc = run("train", "--config", config, "--corpus", corpus, "--no-calibrate", "--out", tmp_path / "m",
                  "--threads", str(2**31))
@@ -931,7 +926,7 @@ def test_saved_weights_are_readable_like_the_json_beside_them(tmp_path):
     from napari_fdlc.model import CorrespondenceModel, save_model
 
     path = tmp_path / "model"
-    save_model(CorrespondenceModel(TINY_h["model"]), path, {})
+    save_model(CorrespondenceModel(TINY["model"]), path, {})
     umask = os.umask(0)
     os.umask(umask)
     expected = 0o666 & ~umask
@@ -948,7 +943,7 @@ def test_a_configurations_resume_true_is_not_silently_dropped(tmp_path, corpus, 
     lost. Expected: the run resumes (or is refused); the checkpoint's better record is kept."""
     out = tmp_path / "run" / "m"
     first = tmp_path / "first.json"
-    first.write_text(json.dumps({**TINY_h, "steps": 6, "out": str(out)}))
+    first.write_text(json.dumps({**TINY, "steps": 6, "out": str(out)}))
     assert run("train", "--config", first, "--corpus", corpus, "--no-calibrate", "--stop-at", "3") == 0
     meta_path = out.with_suffix(".json")
     meta = json.loads(meta_path.read_text())
@@ -957,7 +952,7 @@ def test_a_configurations_resume_true_is_not_silently_dropped(tmp_path, corpus, 
     before = out.with_suffix(".safetensors").read_bytes()
 
     go_on = tmp_path / "go_on.json"
-    go_on.write_text(json.dumps({**TINY_h, "steps": 6, "out": str(out), "resume": True, "seed": 7}))
+    go_on.write_text(json.dumps({**TINY, "steps": 6, "out": str(out), "resume": True, "seed": 7}))
     capsys.readouterr()
     run("train", "--config", go_on, "--corpus", corpus, "--no-calibrate")
     history = json.loads(meta_path.read_text())["history"]

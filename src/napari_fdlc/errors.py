@@ -36,6 +36,13 @@ def one_line(message: object) -> str:
     return "".join(ch if ch.isprintable() else repr(ch)[1:-1] for ch in str(message))
 
 
+def first_line(exc: BaseException) -> str:
+    """The first line of an exception's message (its type's name when it has none): a library's
+    error said in one line."""
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
 _warning_handler: ContextVar[Callable[[str], None] | None] = ContextVar("fdlc_warning_handler", default=None)
 
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from . import colour as colour_model
 from ._blas import one_blas_thread
-from .errors import FdlcError, ModelError, warn
+from .errors import FdlcError, ModelError, first_line, warn
 from .geometry import (CHIRALITIES, apply_affine, canonical_frame, compose_affine, fit_affine, fit_warp,
                        mirrored_by_names, position_evidence, refuse_flat)
 from .match import Labelling, assign_log, check_fixed, make_labelling, name_probabilities
@@ -222,7 +222,7 @@ class Identifier:
         try:
             self.model = model.to(self.device).eval() if model is not None else None
         except (RuntimeError, ValueError, AssertionError) as exc:  # e.g. device="tpu", or "cuda" on a machine without one
-            raise ModelError(f"device '{self.device}' cannot run the model ({_first_line(exc)}); use cpu or cuda") from None
+            raise ModelError(f"device '{self.device}' cannot run the model ({first_line(exc)}); use cpu or cuda") from None
         self.settings = settings or InferenceSettings()
         self._traced: dict = {}  # see _model_pass; shared with copies made by with_settings
         self._mean_worm: tuple = (None, None)  # (atlas, its mean worm) for _atlas_worm_answer
@@ -1007,11 +1007,6 @@ def decide_handedness(willingness, registration=None) -> tuple[str | None, int, 
         if n and binomtest(k, n, 0.5, alternative=side).pvalue < BATCH_HANDEDNESS_P:
             return decided, k, n
     return None, k, n
-
-
-def _first_line(exc: BaseException) -> str:
-    lines = str(exc).strip().splitlines()
-    return lines[0] if lines else type(exc).__name__
 
 
 def _need_tables(test, templates) -> None:

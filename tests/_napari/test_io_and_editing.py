@@ -579,9 +579,8 @@ def test_a_point_added_to_an_opened_sequence_table_is_saved_at_its_frame(make_na
     assert np.allclose(again.data[np.isclose(again.data[:, 1:], [20, 30, 40]).all(axis=1)][:, 0], 1.0)
 
 
-def test_a_point_added_to_the_track_neurons_layer_is_saved_at_its_frame_without_a_copied_name(make_napari_viewer, tmp_path):
-    """A point added to the Track widget's neurons layer took napari's copy of the last point's
-    features: saved at that point's time with its name (twice at t=1)."""
+def _track_neurons_layer(viewer, times, frames=None):
+    """The Track widget's neurons layer of a 5-neuron, two-volume result at ``times``."""
     from napari_fdlc._napari.tracks import track_layers
     from napari_fdlc.track import Sequence, TrackResult
 
@@ -590,10 +589,17 @@ def test_a_point_added_to_the_track_neurons_layer_is_saved_at_its_frame_without_
     volumes = [NeuronTable(worm.xyz), NeuronTable(worm.xyz + 1.0)]
     result = TrackResult([np.arange(n), np.arange(n)], [np.ones(n), np.full(n, 0.9)],
                          [f"N{i}" for i in range(n)], [{}, {}])
-    viewer = make_napari_viewer()
-    for data, kwargs, kind in track_layers(result, Sequence(volumes, [0, 1]), "rec"):
+    for data, kwargs, kind in track_layers(result, Sequence(volumes, times), "rec", frames=frames):
         layer = getattr(viewer, f"add_{kind}")(data, **kwargs)
     assert layer.name == "rec neurons"
+    return layer
+
+
+def test_a_point_added_to_the_track_neurons_layer_is_saved_at_its_frame_without_a_copied_name(make_napari_viewer, tmp_path):
+    """A point added to the Track widget's neurons layer took napari's copy of the last point's
+    features: saved at that point's time with its name (twice at t=1)."""
+    viewer = make_napari_viewer()
+    layer = _track_neurons_layer(viewer, [0, 1])
     layer.add(np.array([[0.0, 10.0, 20.0, 30.0]]))
 
     out = tmp_path / "tracked.csv"
@@ -974,18 +980,8 @@ def test_a_point_added_at_an_empty_frame_of_the_track_neurons_layer_is_saved_at_
     Expected: a point added by hand at frame 1 is saved with t = 1 (gui.md: 'a point added by hand
     takes the time of its frame'). Actual: t = 0, the layer's feature default (the first time),
     which the writer takes over the frame."""
-    from napari_fdlc._napari.tracks import track_layers
-    from napari_fdlc.track import Sequence, TrackResult
-
-    n = 5
-    worm = _worm(n)
-    volumes = [NeuronTable(worm.xyz), NeuronTable(worm.xyz + 1.0)]
-    result = TrackResult([np.arange(n), np.arange(n)], [np.ones(n), np.full(n, 0.9)],
-                         [f"N{i}" for i in range(n)], [{}, {}])
     viewer = make_napari_viewer()
-    for data, kwargs, kind in track_layers(result, Sequence(volumes, [0, 2]), "rec", frames=[0, 2]):
-        layer = getattr(viewer, f"add_{kind}")(data, **kwargs)
-    assert layer.name == "rec neurons"
+    layer = _track_neurons_layer(viewer, [0, 2], frames=[0, 2])
     layer.add(np.array([[1.0, 10.0, 20.0, 30.0]]))
 
     out = tmp_path / "tracked.csv"

@@ -6,7 +6,9 @@ and what happens (and what used to happen: these came from a review of the widge
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import shutil
 import threading
 import time
@@ -20,7 +22,6 @@ from scipy.spatial import cKDTree
 from napari_fdlc._napari._layers import META_KEY, is_image_layer, layer_xyz_um, stack_layers
 from napari_fdlc._napari._widget import NONE
 from napari_fdlc.table import NeuronTable, write_table
-import errno
 
 
 class _Slow:
@@ -186,13 +187,18 @@ def _user_ids(path):
         return []
 
 
+def _dock(viewer, identifier, templates):
+    """The Auto-label widget docked in ``viewer`` and set up (not run): (dock, widget)."""
+    dock, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    return dock, widget
+
+
 def _auto_label_widget(viewer, stack_path, identifier, templates):
     """``stack_path`` opened in ``viewer``, the Auto-label widget docked and set up (not run)."""
     viewer.open(stack_path, plugin="napari-fdlc")
-    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
-    widget.identifier = identifier
-    widget.set_templates(templates)
-    return widget
+    return _dock(viewer, identifier, templates)[1]
 
 
 def _label_a_copy_of_the_sample(viewer, sample_files, identifier, templates, tmp_path):
@@ -722,26 +728,32 @@ def test_a_damaged_session_file_does_not_stop_the_image_from_opening(make_napari
     assert sum(type(lyr).__name__ == "Image" for lyr in layers) == 4
 
 
+def _saving_fails_in(folder, code=errno.EROFS):
+    """ReviewSession.save, failing in ``folder`` as a read-only (or full) disk does."""
+    from napari_fdlc.review import ReviewSession
+
+    save = ReviewSession.save
+
+    def failing(self, path=None):
+        if path is not None and Path(path).parent == folder:
+            raise OSError(code, os.strerror(code))
+        return save(self, path)
+
+    return failing
+
+
 @pytest.mark.parametrize("when", ["at its first save", "after an edit"])
 def test_a_session_moved_to_the_user_folder_is_said_in_napari(make_napari_viewer, sample_files, identifier, templates,
                                                              tmp_path, monkeypatch, when):
     """When the image's folder stops taking the session (read-only remount, disk full), the
     session goes on in the user's folder and napari says where (it was said on stderr only, so a
     napari user did not know where the annotations went)."""
-    import errno
-
     from napari.utils.notifications import notification_manager
 
     from napari_fdlc.review import ReviewSession
 
     stack_path, beside = _label_a_copy_of_the_sample(make_napari_viewer(), sample_files, identifier, templates, tmp_path)
-    save = ReviewSession.save
-
-    def read_only(self, path=None):
-        if path is not None and Path(path).parent == tmp_path:
-            raise OSError(errno.EROFS, "Read-only file system")
-        return save(self, path)
-
+    read_only = _saving_fails_in(tmp_path)
     before = len(notification_manager.records)
     widget = _auto_label_widget(make_napari_viewer(), stack_path, identifier, templates)
     if when == "at its first save":
@@ -925,13 +937,6 @@ def test_the_default_export_name_of_an_image_made_in_napari_is_a_plain_file_name
         assert ":" not in name and name.startswith("my worm"), name
 
 
-def _dock(viewer, identifier, templates):
-    dock, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
-    widget.identifier = identifier
-    widget.set_templates(templates)
-    return dock, widget
-
-
 def _named_rows(session):
     return [int(i) for i in np.flatnonzero(np.asarray(session.auto_id) != "")]
 
@@ -954,13 +959,7 @@ def test_decisions_made_after_the_session_moved_survive_docking_the_widget_again
     assert widget.auto_label() is not None, widget.last_error
     rows = _named_rows(widget.session)
     widget.accept(rows[0])
-    save = ReviewSession.save
-
-    def read_only(self, path=None):
-        if path is not None and Path(path).parent == tmp_path:
-            raise OSError(errno.EROFS, "Read-only file system")
-        return save(self, path)
-
+    read_only = _saving_fails_in(tmp_path)
     monkeypatch.setattr(ReviewSession, "save", read_only)
     widget.accept(rows[1])  # autosaved to the user's folder from now on
     assert widget.session.path.parent != tmp_path
@@ -1069,16 +1068,9 @@ def test_a_decision_not_carried_over_is_kept_when_the_session_went_to_the_user_f
     stack_path = folder / "worm.ome.tif"
     shutil.copy(sample_files[0], stack_path)
     viewer = make_napari_viewer()
-    viewer.open(str(stack_path), plugin="napari-fdlc")
-    _, widget = _dock(viewer, identifier, templates)
+    widget = _auto_label_widget(viewer, str(stack_path), identifier, templates)
     assert widget.auto_label() is not None, widget.last_error
-    save = ReviewSession.save
-
-    def disk_full(self, path=None):
-        if path is not None and Path(path).parent == folder:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return save(self, path)
-
+    disk_full = _saving_fails_in(folder, errno.ENOSPC)
     monkeypatch.setattr(ReviewSession, "save", disk_full)
     xyz = widget.session.table.xyz
     d, _ = cKDTree(xyz).query(xyz, k=2)

@@ -12,10 +12,19 @@ import tifffile
 
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.io import images
-from napari_fdlc.io.images import Stack, StackSeries, read_nd2, read_series, read_stack, role_from_name, write_tiff
+from napari_fdlc.io.images import (
+    ImageError,
+    Stack,
+    StackSeries,
+    VoxelSizeUnknown,
+    read_nd2,
+    read_series,
+    read_stack,
+    role_from_name,
+    write_tiff,
+)
 from napari_fdlc.io.nwb import _text, read_nwb_neurons, write_nwb
 from napari_fdlc.table import NeuronTable
-from napari_fdlc.io.images import ImageError, VoxelSizeUnknown
 
 NAMES = ["mNeptune2.5", "CyOFP1.5", "mTagBFP2", "TagRFP-T"]
 
@@ -639,12 +648,9 @@ def test_nd2_with_uncalibrated_pixels_and_a_z_step_asks_for_the_voxel_size(tmp_p
     one_line_error(exc, "voxel size")
 
 
-NAMES_h = ["mNeptune2.5", "CyOFP1.5", "mTagBFP2", "TagRFP-T"]
-
-
 def _stack():
     data = np.random.default_rng(0).integers(0, 4000, (4, 5, 16, 24)).astype(np.uint16)
-    return Stack(data, (1.5, 0.25, 0.3), ["R", "G", "B", "W"], channel_names=NAMES_h)
+    return Stack(data, (1.5, 0.25, 0.3), ["R", "G", "B", "W"], channel_names=NAMES)
 
 
 def _one_line(exc) -> str:

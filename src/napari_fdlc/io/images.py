@@ -25,7 +25,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..errors import FdlcError
+from ..errors import FdlcError, first_line as _first_line  # (nwb.py takes _first_line from here)
 
 ROLES = ("R", "G", "B", "W", "GFP")
 IMAGEJ_ROLES = "fdlc_roles"  # the ImageJ property write_tiff records each channel's role in
@@ -324,11 +324,6 @@ def _sniff(path: Path) -> str | None:
     if name.endswith(".nd2"):
         return "nd2"
     return None
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return text[0] if text else type(exc).__name__
 
 
 def finish_stack(
