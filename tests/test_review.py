@@ -359,3 +359,18 @@ def test_a_neuropal_id_export_shows_each_name_once(tmp_path, session):
     df = pd.read_csv(session.export(tmp_path / "npid.csv", format="neuropal_id"), skiprows=6, keep_default_na=False)
     shown = [u or a for u, a in zip(df["User ID"], df["Auto ID"])]
     assert shown == [n.rstrip("?") for n in session.display_names()]
+
+
+def test_a_colour_without_reading_stays_empty_in_the_export_and_the_session_file(tmp_path):
+    """A neuron whose colour cell was empty: the export and the session file wrote the median the
+    model used in its place, a reading made up. Both keep it empty, and a session read back
+    still knows the gap."""
+    table = _table()
+    table = NeuronTable(table.xyz, {**table.colours, "G": np.array([1.0, np.nan, 3.0, 4.0])}, extra=table.extra)
+    s = ReviewSession(table, _labelling(), voxel_size_zyx=VOXEL, path=tmp_path / "s.json")
+    out = s.export(tmp_path / "ids.csv")
+    assert pd.read_csv(out)["G"].isna().tolist() == [False, True, False, False]
+    s.save()
+    back = ReviewSession.load(tmp_path / "s.json")
+    assert back.table.colour_gaps["G"].tolist() == [False, True, False, False]
+    assert back.table.colours["G"][1] == 3.0

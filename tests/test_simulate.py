@@ -162,3 +162,47 @@ def test_fdlc_simulate_writes_nothing_when_one_output_cannot_be_written(tmp_path
     err = capsys.readouterr().err
     assert not (out / "src_syn0.csv").exists(), "a half-done run left src_syn0.csv behind"
     assert ".tmp" not in err and "src_syn1.csv" in err, err
+
+
+def test_fdlc_simulate_gives_spurious_neurons_no_invented_colour_reading(tmp_path):
+    """Expected: a spurious neuron of ``fdlc simulate`` takes its colour from the source's
+    neurons (simulate.py: "names and colours travel"), so every G value written in a copy is a
+    G reading of the source, or empty where the cell it was drawn from had none (as real
+    neurons' empty cells stay empty).
+    Before: simulate_worm draws the spurious colours from ``table.colours``, where the reader put
+    the volume's median in every empty cell, and the CLI blanks unread cells of *real* neurons
+    only: with G read on 4 of 155 neurons, nearly every spurious neuron is written with
+    G = the median of those 4 (a value no neuron has), as if measured."""
+    worm = generate_worm(seed=1)
+    df = worm.to_dataframe().astype(object)
+    readings = [101.0, 202.0, 303.0, 404.0]  # the median, 252.5, is not one of them
+    df["G"] = [str(v) for v in readings] + [""] * (len(df) - len(readings))
+    source = tmp_path / "src.csv"
+    df.to_csv(source, index=False)
+    out = tmp_path / "out"
+    assert main(["simulate", str(source), "--out", str(out), "--count", "3", "--seed", "1"]) == 0
+    written = []
+    for k in range(3):
+        copy = pd.read_csv(out / f"src_syn{k}.csv", keep_default_na=False, dtype=str)
+        spurious = copy[copy["origin"] == "-1"]
+        written += [float(v) for v in spurious["G"] if v.strip()]
+    assert written, "pick a seed that adds spurious neurons"
+    invented = sorted({v for v in written if v not in readings})
+    assert not invented, f"{len(written)} spurious G values written, {invented} of them no neuron's reading"
+
+
+def test_simulate_worm_keeps_a_missing_colour_reading_missing():
+    """Expected: a neuron without a G reading (NaN, kept as a gap by NeuronTable and written
+    back empty) is, in its synthetic copy, still without a G reading: names and colours travel
+    with their neurons (simulate.py docstring), and a gap is part of the colour.
+    Before: simulate_worm copies ``table.colours``, where the gap holds the volume's median, into
+    a new table: the copy's neuron has G = the median and to_dataframe writes it as measured."""
+    worm = generate_worm(seed=1)
+    g = worm.colours["G"].copy()
+    g[3] = np.nan
+    table = NeuronTable(worm.xyz, {**worm.colours, "G": g}, worm.labels)
+    assert np.isnan(table.to_dataframe()["G"].iloc[3])  # the source writes it back empty
+    synth = simulate_worm(table, 0, SimulationParams(drop_fraction=(0.0, 0.0), max_spurious=0))
+    row = int(np.flatnonzero(synth.origin == 3)[0])
+    written = synth.table.to_dataframe()["G"].iloc[row]
+    assert np.isnan(written), f"the copy of the neuron without a G reading has G = {written}"

@@ -1,8 +1,17 @@
 import numpy as np
+import pandas as pd
 import pytest
 
 from napari_fdlc.errors import TableError
-from napari_fdlc.table import NEUROPAL_ID_HEADER, NeuronTable, parse_name, read_table, write_neuropal_id, write_table
+from napari_fdlc.table import (
+    NEUROPAL_ID_HEADER,
+    NeuronTable,
+    parse_name,
+    read_table,
+    table_from_dataframe,
+    write_neuropal_id,
+    write_table,
+)
 
 
 def write(path, text):
@@ -254,3 +263,32 @@ def test_write_neuropal_id_with_auto_ids_and_no_confidences(tmp_path, worm):
     """auto_id without auto_conf: a TypeError (iteration over a 0-d array)."""
     write_neuropal_id(worm, tmp_path / "npid.csv", auto_id=list(worm.labels))
     assert len(read_table(tmp_path / "npid.csv")) == len(worm)
+
+
+def test_an_empty_colour_cell_is_written_back_empty(tmp_path):
+    """A neuron without a colour reading is the volume's median for the model, but a table read
+    and written back (napari's export, a review session's) wrote that median into the empty cell:
+    a reading made up. It stays empty, through a subset too (filled with the subset's median)."""
+    table = read_table(_csv(tmp_path, "x_um,y_um,z_um,R,G\n1,2,3,5,1\n4,5,6,,2\n7,8,9,9,3\n1,9,4,7,\n"))
+    assert table.colours["R"].tolist() == [5, 7, 9, 7] and table.colours["G"].tolist() == [1, 2, 3, 2]
+    out = tmp_path / "back.csv"
+    write_table(table, out)
+    assert out.read_text().splitlines()[2:] == ["4.0,5.0,6.0,,2.0,", "7.0,8.0,9.0,9.0,3.0,", "1.0,9.0,4.0,7.0,,"]
+    part = table.subset([1, 2])
+    assert part.colours["R"].tolist() == [9, 9] and np.isnan(part.colours_as_read()["R"][0])
+    write_neuropal_id(table, tmp_path / "npid.csv")
+    assert read_table(tmp_path / "npid.csv").colour_gaps["R"].tolist() == [False, True, False, False]
+    # given in memory with NaN: the same; a channel read nowhere stays NaN (no reading at all)
+    memory = NeuronTable(np.zeros((3, 3)) + np.arange(3)[:, None], {"R": [1.0, np.nan, 3.0], "B": [np.nan] * 3})
+    assert memory.colours["R"].tolist() == [1, 2, 3] and np.isnan(memory.colours["B"]).all()
+
+
+def test_a_data_frame_with_nan_colours_is_a_table():
+    """table_from_dataframe of a DataFrame in memory holding NaN for no colour reading (what a
+    table's own to_dataframe gives, e.g. a sequence joined by time to open in napari) was refused:
+    'nan is not a finite number' (pandas keeps NaN through astype(str))."""
+    df = pd.DataFrame({"x_um": [1.0, 2, 3], "y_um": [1.0, 2, 3], "z_um": [1.0, 2, 3], "R": [1.0, np.nan, 3.0]})
+    table = table_from_dataframe(df)
+    assert table.colours["R"].tolist() == [1, 2, 3] and table.colour_gaps["R"].tolist() == [False, True, False]
+    with pytest.raises(TableError, match="line 4, column 'z_um': an empty cell"):
+        table_from_dataframe(df.assign(z_um=[1.0, 2, np.nan]))

@@ -79,7 +79,7 @@ def _run_simulate(args) -> int:
     import numpy as np
 
     from .simulate import simulate_worm
-    from .table import COLOUR_CHANNELS, read_volume, warn_implausible_scales, write_table
+    from .table import read_volume, warn_implausible_scales, write_table
 
     if args.count < 1:
         raise FdlcError("--count must be at least 1")
@@ -95,18 +95,11 @@ def _run_simulate(args) -> int:
     # Every output checked before the first is written: nothing is written unless all can be.
     paths = [check_output(out / f"{Path(args.table).stem}_syn{k}.csv", [args.table], create_folder=True)
              for k in range(args.count)]
-    # A colour cell left empty in the source (no reading) stays empty in its copies: the reader
-    # fills it with the volume's median, which would pass for a measurement.
-    unread = {c: (table.text[c].str.strip() == "").to_numpy() for c in COLOUR_CHANNELS
-              if c in table.colours and table.text is not None and c in table.text}
     rng = np.random.default_rng(args.seed)
     for path in paths:
         synth = simulate_worm(table, rng)
         df = synth.table.to_dataframe()
         df["origin"] = synth.origin
-        real = synth.origin >= 0
-        for c, empty in unread.items():
-            df.loc[real & empty[np.maximum(synth.origin, 0)], c] = np.nan
         write_table(df, path)
         print(path)
     return 0
@@ -242,7 +235,7 @@ def _atlas_parser(sub) -> None:
     p.add_argument("--corpus", help="folder with worms.csv (default: ../shared/data/neuropal_corpus or $FDLC_CORPUS)")
     p.add_argument("--labs", nargs="+", default=None, help="labs to use (default: all)")
     p.add_argument("--min-frequency", type=float, default=0.2,
-                   help="keep names seen in at least this fraction of worms (default 0.2)")
+                   help="keep names seen in at least this fraction of worms (default 0.2), and in two at least")
     p.add_argument("--out", required=True, help="atlas CSV (the shipped one is src/napari_fdlc/data/atlas.csv)")
     p.set_defaults(run=_run_atlas)
 

@@ -9,7 +9,8 @@ scores, see :mod:`napari_fdlc.colour`). Built by :func:`build_atlas`:
    similarity transform (rotation, scale, translation; the mirror is allowed *only* to undo a
    recording's chirality convention, so every worm enters the atlas in one chirality), then the
    per-name means are recomputed; three rounds;
-3. names seen in at least ``min_frequency`` of the worms are kept.
+3. names seen in at least ``min_frequency`` of the worms, and in two worms at least (a spread
+   needs two), are kept.
 
 The least-squares scales of step 2 are biased low, so the atlas comes out 0.6–0.9× the size of
 the worms in µm; the median ratio is kept (``Atlas.worm_scale``) so that generated worms have a
@@ -279,7 +280,7 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
     return Atlas(
         names=np.array(names, dtype=object),
         mean=mean_pos - centre,
-        sd=np.array([p.std(0) if len(p) > 1 else np.full(3, 2.0) for p in pos]),
+        sd=np.array([p.std(0) for p in pos]),
         colour=colour,
         colour_sd=colour_sd,
         frequency=np.array([len(p) / used for p in pos]),

@@ -501,9 +501,10 @@ class ReviewSession:
         s = self._s
         t = s.table
         neurons: dict[str, list] = {c: _floats(t.xyz[:, k]) for k, c in enumerate(COORDS)}
+        colours = t.colours_as_read()
         for c in COLOUR_CHANNELS:
-            if c in t.colours:
-                neurons[c] = _floats(t.colours[c])
+            if c in colours:
+                neurons[c] = _floats(colours[c])
         neurons["auto_id"] = list(s.auto_id)
         neurons["auto_conf"] = _floats(s.auto_conf)
         for k in range(K):
@@ -900,9 +901,10 @@ class ReviewSession:
         s = self._s
         t = s.table
         df = pd.DataFrame({c: t.xyz[:, k] for k, c in enumerate(COORDS)})
+        colours = t.colours_as_read()
         for c in COLOUR_CHANNELS:
-            if c in t.colours:
-                df[c] = t.colours[c]
+            if c in colours:
+                df[c] = colours[c]
         df["label"] = self.display_names()
         df["auto_id"] = s.auto_id
         df["auto_conf"] = s.auto_conf

@@ -154,10 +154,12 @@ def simulate_worm(
     conf = np.zeros(len(pts))
     conf[real] = table.label_conf[origin[real]]
     colours = {}
-    for ch, values in table.colours.items():
-        v = np.full(len(pts), np.median(values))
+    for ch, values in table.colours_as_read().items():  # a neuron without a reading has none in its copy
+        read = values[np.isfinite(values)]
+        v = np.full(len(pts), np.nan)
         v[real] = values[origin[real]]
-        v[~real] = rng.choice(values, (~real).sum()) if (~real).any() else v[~real]
+        if (~real).any() and len(read):  # a spurious neuron: some neuron's reading
+            v[~real] = rng.choice(read, (~real).sum())
         colours[ch] = v
     extra = None
     if len(table.extra.columns):  # the real neurons' other columns go with them; empty on spurious ones

@@ -46,8 +46,10 @@ class NeuronTable:
     ``labels`` holds names without the ``?`` ('' = unnamed) and ``label_conf`` the annotator's
     confidence (1 named, 0.5 unsure, 0 unnamed). ``extra`` keeps every other input column, in
     input order, so that a table read and written back loses nothing. ``text`` (tables read from
-    a file) is every input column as the text read: an empty colour cell is read as the
-    volume's median, but ``fdlc label`` passes the test's columns through as they were written.
+    a file) is every input column as the text read. A colour without a reading (an empty cell,
+    NaN) is the volume's median in ``colours``, so that one gap does not remove the channel for
+    the whole worm; ``colour_gaps`` remembers it, and the table is written back with the cell
+    empty (:meth:`colours_as_read`).
     """
 
     xyz: np.ndarray
@@ -57,11 +59,18 @@ class NeuronTable:
     extra: pd.DataFrame | None = None
     source: str = "<memory>"
     text: pd.DataFrame | None = None
+    colour_gaps: dict[str, np.ndarray] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.xyz = positions(self.xyz)
         n = len(self.xyz)
         self.colours = {c: _per_neuron(v, n, f"colour {c}", np.float64) for c, v in self.colours.items()}
+        self.colour_gaps = {}
+        for c, v in self.colours.items():
+            gaps = ~np.isfinite(v)
+            if gaps.any() and not gaps.all():  # a channel read nowhere stays NaN: no reading at all
+                self.colours[c] = np.where(gaps, np.median(v[~gaps]), v)
+                self.colour_gaps[c] = gaps
         if self.labels is None:
             self.labels = np.full(n, "", dtype=object)
         # As a table's names are read: 'AVAL?' is AVAL, unsure
@@ -86,6 +95,11 @@ class NeuronTable:
     def names(self) -> list[str]:
         return [s for s in self.labels if s]
 
+    def colours_as_read(self) -> dict[str, np.ndarray]:
+        """``colours`` with NaN where a neuron had no reading (what a table is written back with)."""
+        return {c: np.where(self.colour_gaps[c], np.nan, v) if c in self.colour_gaps else v
+                for c, v in self.colours.items()}
+
     def colour_matrix(self, channels: tuple[str, ...] | list[str]) -> np.ndarray:
         """(N, len(channels)) array of the requested colour channels."""
         return np.stack([self.colours[c] for c in channels], axis=1) if channels else np.zeros((len(self), 0))
@@ -94,7 +108,7 @@ class NeuronTable:
         index = np.asarray(index)
         return NeuronTable(
             xyz=self.xyz[index],
-            colours={c: v[index] for c, v in self.colours.items()},
+            colours={c: v[index] for c, v in self.colours_as_read().items()},
             labels=self.labels[index],
             label_conf=self.label_conf[index],
             extra=self.extra.iloc[index].reset_index(drop=True),
@@ -111,9 +125,10 @@ class NeuronTable:
 
     def to_dataframe(self) -> pd.DataFrame:
         df = pd.DataFrame({c: self.xyz[:, i] for i, c in enumerate(COORDS)})
+        colours = self.colours_as_read()
         for c in COLOUR_CHANNELS:
-            if c in self.colours:
-                df[c] = self.colours[c]
+            if c in colours:
+                df[c] = colours[c]
         df["label"] = self.label_strings()
         for c in self.extra.columns:
             if c not in df.columns:
@@ -359,7 +374,8 @@ MAX_POSITION_UM = 1e9
 
 def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, allow_empty: bool,
                     shown_as: str | None = None) -> np.ndarray:
-    raw = df[column].astype(str).str.strip()
+    cells = df[column]  # a table in memory holds NaN for no reading, a file '' (both empty)
+    raw = cells.astype(object).where(cells.notna(), "").astype(str).str.strip()
     values = pd.to_numeric(raw.where(raw != "", "nan"), errors="coerce").to_numpy(dtype=np.float64, copy=True)
     bad = ~np.isfinite(values)
     # pandas 2's parser is off by one unit in the last place on about a third of the numbers;
@@ -415,12 +431,8 @@ def table_from_dataframe(df: pd.DataFrame, source: str = "<memory>", first_line:
     for c in COLOUR_CHANNELS:
         if c in df.columns:
             values = _numeric_column(df, c, source, first_line, allow_empty=True, shown_as=shown.get(c, c))
-            if np.isnan(values).all():
-                continue
-            # A neuron without a reading gets the volume's median so that one gap does not
-            # remove the channel for the whole worm.
-            values[np.isnan(values)] = np.nanmedian(values)
-            colours[c] = values
+            if not np.isnan(values).all():  # an empty cell: the NeuronTable fills and remembers it
+                colours[c] = values
     labels = np.full(len(df), "", dtype=object)
     conf = np.zeros(len(df))
     if names and "label" in df.columns:
@@ -521,7 +533,7 @@ def write_neuropal_id(
             rows[col] = [f"{v / size + 1:.3f}" for v in table.xyz[:, axis]]
     for ours, theirs in [("R", "Z-Scored Red"), ("G", "Z-Scored Green"), ("B", "Z-Scored Blue"), ("W", "Z-Scored White")]:
         if ours in table.colours:
-            v = table.colours[ours]
+            v = table.colours_as_read()[ours]
             finite = np.isfinite(v)  # a neuron without a reading leaves its cell empty, not the column NaN
             spread = v[finite].std() if finite.any() else 0.0
             z = (v - (v[finite].mean() if finite.any() else 0.0)) / (spread or 1.0)

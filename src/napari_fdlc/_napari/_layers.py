@@ -306,8 +306,7 @@ def table_from_layer(layer, use_label: bool = False) -> NeuronTable:
     for c in COLOUR_CHANNELS:
         if c in feats.columns:
             v = pd.to_numeric(feats[c], errors="coerce").to_numpy(dtype=float, copy=True)
-            if np.isfinite(v).any():
-                v[~np.isfinite(v)] = np.nanmedian(v)
+            if np.isfinite(v).any():  # an empty cell: the NeuronTable fills and remembers it
                 colours[c] = v
     labels = None
     if use_label:

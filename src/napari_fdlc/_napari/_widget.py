@@ -1238,7 +1238,7 @@ class AutoLabelWidget(QWidget):
             kept = list(range(n_old))
             description = "move neuron(s)"
         colours = {}
-        for c, v in old.colours.items():
+        for c, v in old.colours_as_read().items():
             col = np.full(n_new, np.nan)
             for j, o in enumerate(kept):
                 if o is not None:
@@ -1250,17 +1250,18 @@ class AutoLabelWidget(QWidget):
         if description == "move neuron(s)":  # a point dragged onto another nucleus takes the colour there
             moved = [int(i) for i in np.atleast_1d(indices) if 0 <= int(i) < n_new] if indices is not None else []
             if moved:
-                self._fill_colours(colours, xyz, kept, moved, median_otherwise=False)
+                self._fill_colours(colours, xyz, kept, moved)
         extra = old.extra.iloc[[o for o in kept if o is not None]].reset_index(drop=True) if all(o is not None for o in kept) else None
         if extra is None:
             extra = old.extra.reindex([o if o is not None else -1 for o in kept]).reset_index(drop=True)
         table = NeuronTable(xyz, colours, extra=extra, source=old.source)
         session.replace_table(table, kept, description)
 
-    def _fill_colours(self, colours: dict, xyz, kept, new_rows, median_otherwise: bool = True) -> None:
+    def _fill_colours(self, colours: dict, xyz, kept, new_rows) -> None:
         """Colours of neurons added (or moved) by hand: measured in the image on the scale of the
-        others (z-scores across all neurons, as the detector does), else (``median_otherwise``)
-        the median."""
+        others (z-scores across all neurons, as the detector does). Without the image, one added
+        has no reading (NaN: the NeuronTable fills the median and exports the cell empty) and one
+        moved keeps its colour."""
         measured = None
         stack = self._stack
         image = self.session.image if self.session is not None else None
@@ -1280,8 +1281,6 @@ class AutoLabelWidget(QWidget):
         for c, col in colours.items():
             if measured is not None and c in measured:
                 col[new_rows] = measured[c][new_rows]
-            elif median_otherwise:
-                col[new_rows] = np.nanmedian(col) if np.isfinite(col).any() else 0.0
 
     def _on_selection(self, *_) -> None:
         if self._guard or self.layer is None or self.session is None:
