@@ -374,3 +374,26 @@ def test_a_colour_without_reading_stays_empty_in_the_export_and_the_session_file
     back = ReviewSession.load(tmp_path / "s.json")
     assert back.table.colour_gaps["G"].tolist() == [False, True, False, False]
     assert back.table.colours["G"][1] == 3.0
+
+
+def test_neurons_added_or_moved_by_hand_are_remembered(tmp_path):
+    """A new detection (Auto-label again) may lack a neuron: lost work only when the user added or
+    moved it. The session keeps which (through undo and its file); a file that does not say
+    counts every neuron as possibly made by hand."""
+    table = _table()
+    s = ReviewSession(table, _labelling(), path=tmp_path / "s.json")
+    assert s.by_hand.tolist() == [False] * 4
+    xyz = np.vstack([table.xyz, [[1.0, 2.0, 3.0]]])
+    xyz[1] += 0.5
+    s.replace_table(NeuronTable(xyz, {}), [0, 1, 2, 3, None], "add")
+    assert s.by_hand.tolist() == [False, True, False, False, True]
+    s.replace_table(NeuronTable(xyz[[1, 2, 4]], {}), [1, 2, 4], "remove")
+    assert s.by_hand.tolist() == [True, False, True]
+    s.save()
+    assert ReviewSession.load(tmp_path / "s.json").by_hand.tolist() == [True, False, True]
+    s.undo()
+    assert s.by_hand.tolist() == [False, True, False, False, True]
+    d = json.loads((tmp_path / "s.json").read_text())
+    del d["by_hand"]
+    (tmp_path / "old.json").write_text(json.dumps(d))
+    assert ReviewSession.load(tmp_path / "old.json").by_hand.all()

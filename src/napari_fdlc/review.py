@@ -188,12 +188,14 @@ class _State:
     status: list[str]
     order: list[int]
     labelled: bool
+    # neurons added or moved by hand: a new detection that lacks one loses the user's work
+    by_hand: np.ndarray
 
     def copy(self) -> "_State":
         return _State(
             self.table, list(self.auto_id), self.auto_conf.copy(), [list(c) for c in self.cand],
             self.cand_p.copy(), list(self.user_id), self.user_conf.copy(), list(self.status),
-            list(self.order), self.labelled,
+            list(self.order), self.labelled, self.by_hand.copy(),
         )
 
 
@@ -334,6 +336,7 @@ class ReviewSession:
             status=["auto"] * n,
             order=list(range(n)),
             labelled=False,
+            by_hand=np.zeros(n, dtype=bool),
         )
         if labelling is not None:
             self._apply_labelling(self._s, labelling)
@@ -341,6 +344,11 @@ class ReviewSession:
     # ----- read access ------------------------------------------------------------------------
     def __len__(self) -> int:
         return len(self._s.table)
+
+    @property
+    def by_hand(self) -> np.ndarray:
+        """Mask of the neurons added or moved by hand (the layer's edits; a copy)."""
+        return self._s.by_hand.copy()
 
     @property
     def table(self) -> NeuronTable:
@@ -528,6 +536,7 @@ class ReviewSession:
             "labelled": s.labelled,
             "vocabulary": self.vocabulary,
             "order": list(s.order),
+            "by_hand": [int(j) for j in np.flatnonzero(s.by_hand)],
             "settings": _json_safe(self.settings),
             "neurons": neurons,
             "extra": extra,
@@ -573,6 +582,10 @@ class ReviewSession:
             s.labelled = bool(d.get("labelled", any(s.auto_id)))
             order = [int(i) for i in d.get("order") or range(n)]
             s.order = order if sorted(order) == list(range(n)) else list(range(n))
+            # rows added or moved by hand; a file from before they were kept does not say: any may be
+            by_hand = d.get("by_hand")
+            s.by_hand = np.ones(n, dtype=bool) if not isinstance(by_hand, list) else \
+                np.isin(np.arange(n), [int(j) for j in by_hand if isinstance(j, int) and not isinstance(j, bool)])
             session.settings = _known_settings(d.get("settings"))
         except (KeyError, TypeError, ValueError, IndexError, OverflowError, FdlcError) as exc:
             raise FdlcError(f"{source}: damaged session file ({type(exc).__name__}: {exc})") from None
@@ -805,6 +818,8 @@ class ReviewSession:
             s.auto_id, s.user_id, s.status = [""] * n, [""] * n, ["auto"] * n
             s.auto_conf, s.user_conf = np.zeros(n), np.full(n, np.nan)
             s.cand, s.cand_p = [[""] * K for _ in range(n)], np.zeros((n, K))
+            s.by_hand = np.array([o is None or bool(old.by_hand[o]) or not np.array_equal(table.xyz[j], old.table.xyz[o])
+                                  for j, o in enumerate(kept)], dtype=bool)
             for j, o in enumerate(kept):
                 if o is None:
                     continue

@@ -1085,3 +1085,31 @@ def test_a_decision_not_carried_over_is_kept_when_the_session_went_to_the_user_f
     assert "AVAL" not in widget.session.user_id
     files = [p for p in (*folder.iterdir(), *widget.session.path.parent.iterdir()) if p.suffix == ".json"]
     assert any("AVAL" in _user_ids_h(p) for p in files), [p.name for p in files]
+
+
+def test_auto_label_again_with_another_diameter_sets_nothing_aside(labelled_viewer, tmp_path):
+    """Auto-label, then Auto-label again with another nucleus diameter: every nucleus the new
+    detection lacked was counted as "added or moved by hand?", the session file was set aside
+    and a warning said so, though the user had edited nothing. Only neurons the user added or
+    moved count: one added by hand still does."""
+    from napari.utils.notifications import notification_manager
+
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    folder = widget.session.path.parent
+    files_before = sorted(p.name for p in folder.iterdir())
+    widget.diameter_spin.setValue(5.0)
+    before = len(notification_manager.records)
+    assert widget.auto_label() is not None, widget.last_error
+    said = [str(r.message) for r in notification_manager.records[before:]]
+    assert not any("added or moved" in m for m in said), said
+    assert sorted(p.name for p in folder.iterdir()) == files_before, "a session file was set aside"
+
+    layer = widget.layer
+    layer.add(layer.data[0] + np.array([0.0, 30.0, 30.0]))
+    assert widget.session.by_hand.tolist() == [False] * (len(layer.data) - 1) + [True]
+    widget.diameter_spin.setValue(3.0)
+    before = len(notification_manager.records)
+    assert widget.auto_label() is not None, widget.last_error
+    said = [str(r.message) for r in notification_manager.records[before:]]
+    assert any("1 neuron(s) you added or moved" in m for m in said), said

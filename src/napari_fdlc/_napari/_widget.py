@@ -822,7 +822,7 @@ class AutoLabelWidget(QWidget):
             voxel_without_image = points_scale
         own_decisions = self.session.decisions() if own else None
         # snapshots: the worker thread never reads a session the user may be editing
-        previous_snapshot = (previous.table.xyz.copy(), previous.decisions()) if previous is not None else None
+        previous_snapshot = (previous.table.xyz.copy(), previous.decisions(), previous.by_hand) if previous is not None else None
         signals, warming = self._signals, self._warming
 
         def work():
@@ -849,15 +849,18 @@ class AutoLabelWidget(QWidget):
             if len(table) == 0:
                 raise FdlcError("no nuclei found: check the W channel and the nucleus diameter")
             carried = dict(decisions)
-            lost = missing = 0  # earlier decisions, and neurons (added or moved by hand), the new detection lacks
+            lost = missing = 0  # earlier decisions, and neurons added or moved by hand, the new detection lacks
             if previous_snapshot is not None and previous_snapshot[1]:
-                from_previous = carry_decisions(previous_snapshot, table.xyz)
+                from_previous = carry_decisions(previous_snapshot[:2], table.xyz)
                 lost = len(previous_snapshot[1]) - len(from_previous)
                 carried.update(from_previous)
-            if previous_snapshot is not None and len(previous_snapshot[0]) and given_table is None:
+            if previous_snapshot is not None and previous_snapshot[2].any() and given_table is None:
                 from scipy.spatial import cKDTree
 
-                gap, _ = cKDTree(table.xyz).query(previous_snapshot[0], distance_upper_bound=np.nextafter(1.5, 2))
+                # a detected neuron the new detection lacks is the new detection's answer (another
+                # diameter, say); one the user added or moved is work lost
+                hand_made = previous_snapshot[0][previous_snapshot[2]]
+                gap, _ = cKDTree(table.xyz).query(hand_made, distance_upper_bound=np.nextafter(1.5, 2))
                 missing = int(np.sum(~np.isfinite(gap)))
             if own_decisions is not None:
                 carried = own_decisions
@@ -1063,7 +1066,7 @@ class AutoLabelWidget(QWidget):
                 self._notify_warning(f"{lost} of your decisions had no neuron within 1.5 µm in the new detection "
                                      f"and were not carried over{where}")
             if missing:
-                self._notify_warning(f"{missing} neuron(s) of the earlier session (added or moved by hand?) have no "
+                self._notify_warning(f"{missing} neuron(s) you added or moved in the earlier session have no "
                                      f"neuron within 1.5 µm in the new detection and are not in it{where}")
         session = ReviewSession(
             table, labelling, threshold=self.threshold, voxel_size_zyx=voxel, image=key, path=path
