@@ -8,10 +8,12 @@ import pandas as pd
 import pytest
 
 from napari_fdlc.cli import main
+from napari_fdlc.errors import FdlcError
 from napari_fdlc.label import labelling_frame
 from napari_fdlc.match import Labelling
+from napari_fdlc.reference import generate_worm
 from napari_fdlc.sample import sample_paths
-from napari_fdlc.table import NeuronTable, write_neuropal_id, write_table
+from napari_fdlc.table import NeuronTable, read_table, write_neuropal_id, write_table
 
 
 def run(*args):
@@ -312,3 +314,85 @@ def test_one_time_point_written_as_1_and_1_0_is_one_volume(tmp_path, capsys, sma
     out = tmp_path / "out.csv"
     code = run("label", test, "--template", template, "--method", "cpd", "--out", out)
     assert code == 0, _err(capsys)
+
+
+@pytest.fixture(scope="module")
+def small_worm():
+    """30 neurons of a generated worm, every one named."""
+    return generate_worm(seed=1).subset(range(30))
+
+
+def test_an_out_that_is_a_symlink_loop_is_one_line_not_a_traceback(tmp_path, small_worm, capsys):
+    """Expected (contract: "non-zero with a one-line message on stderr for any bad input"): an
+    --out that is a symbolic link loop (a stale link pointing at itself through another) is
+    refused with exit 2 and one line. Instead errors.check_output -> _replaces_input calls
+    Path.resolve(), which raises RuntimeError("Symlink loop from ...") on Python 3.11: neither
+    FdlcError nor OSError, so cli.main lets it out as a traceback."""
+    test, template = tmp_path / "test.csv", tmp_path / "template.csv"
+    write_table(small_worm, test)
+    write_table(small_worm, template)
+    (tmp_path / "a.csv").symlink_to(tmp_path / "b.csv")
+    (tmp_path / "b.csv").symlink_to(tmp_path / "a.csv")
+    try:
+        code = run("label", test, "--template", template, "--method", "cpd", "--out", tmp_path / "a.csv")
+    except RuntimeError as exc:
+        pytest.fail(f"traceback instead of one line: {exc!r}")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len([line for line in err if "error" in line]) == 1, err
+
+
+def test_an_r_na_label_is_unnamed_not_a_neuron_called_na(tmp_path, small_worm, capsys):
+    """R's write.csv (and readr's write_csv) writes a missing name as a bare NA (quoted names,
+    unquoted NA, a row-name column). The reader already takes NA as a missing value in a colour
+    column (docs/cli.md: "one written NaN / NA as MATLAB and R write a missing value"), but in
+    the label column it is read as a neuron named 'NA' (table.parse_name compares it as a
+    name). Expected: an unnamed neuron (contract: "an empty cell means unnamed"). Instead the
+    template names a neuron 'NA', and `fdlc label` gives a test neuron auto_id 'NA'."""
+    df = small_worm.to_dataframe()
+    lines = ['"","x_um","y_um","z_um","R","G","B","label"']
+    for i, r in df.iterrows():
+        name = "NA" if i == 5 else f'"{r.label}"'
+        lines.append(f'"{i + 1}",{r.x_um!r},{r.y_um!r},{r.z_um!r},{r.R!r},{r.G!r},{r.B!r},{name}')
+    template = tmp_path / "from_r.csv"
+    template.write_text("\n".join(lines) + "\n")
+    table = read_table(template)
+    test = tmp_path / "test.csv"
+    write_table(small_worm, test)
+    out = tmp_path / "ids.csv"
+    assert run("label", test, "--template", template, "--method", "cpd", "--out", out) == 0, capsys.readouterr().err
+    given = pd.read_csv(out, keep_default_na=False)
+    assert table.labels[5] == "" and "NA" not in set(given["auto_id"]), (table.labels[5], given.loc[5, "auto_id"])
+
+
+def test_a_neuropal_id_export_with_spaces_around_its_header_names_is_read(tmp_path, small_worm):
+    """A NeuroPAL_ID export whose header cells carry spaces around the names ('User ID, Real X
+    (um), ...', as a hand-edited or re-exported file has them) is recognised as a NeuroPAL_ID
+    export (table._neuropal_id_header strips the cells), but _from_neuropal_id renames the
+    columns by the unstripped names, so the read refuses it as "missing column(s) Real X (um),
+    Real Y (um), Real Z (um)" — columns that are there. Expected: read as the same export
+    without spaces is (the reader says "spaces around names do not count" elsewhere)."""
+    plain = tmp_path / "plain.csv"
+    write_neuropal_id(small_worm, plain)
+    lines = plain.read_text().splitlines()
+    lines[7] = ", ".join(lines[7].split(","))  # the header, after the 7 preamble lines
+    spaced = tmp_path / "spaced.csv"
+    spaced.write_text("\n".join(lines) + "\n")
+    try:
+        table = read_table(spaced)
+    except FdlcError as exc:
+        pytest.fail(f"refused: {exc}")
+    assert list(table.labels) == list(read_table(plain).labels)
+
+
+def test_a_first_line_of_spaces_above_the_header_is_skipped_as_a_blank_one(tmp_path):
+    """A line holding only spaces above the header is a blank line to pandas (and to the reader,
+    which skips empty lines above the header "as pandas skips them too"). Instead
+    table._read_csv takes it as a one-column header and refuses the table with a wrong
+    message: "line 2 has 4 fields, the header 1" (line 2 *is* the header)."""
+    path = tmp_path / "spaces_first.csv"
+    path.write_text("   \nx_um,y_um,z_um,label\n1.5,2.5,3.5,AVAL\n4.5,5.5,6.5,AVAR\n")
+    try:
+        table = read_table(path)
+    except FdlcError as exc:
+        pytest.fail(f"refused: {exc}")
+    assert table.xyz[:, 0].tolist() == [1.5, 4.5] and list(table.labels) == ["AVAL", "AVAR"]

@@ -292,3 +292,10 @@ def test_a_data_frame_with_nan_colours_is_a_table():
     assert table.colours["R"].tolist() == [1, 2, 3] and table.colour_gaps["R"].tolist() == [False, True, False]
     with pytest.raises(TableError, match="line 4, column 'z_um': an empty cell"):
         table_from_dataframe(df.assign(z_um=[1.0, 2, np.nan]))
+
+
+def test_excels_na_is_no_reading_and_no_name(tmp_path):
+    """Excel writes a missing value as #N/A (R as NA): a colour so written was refused as 'not a
+    finite number', and a name so written named a neuron '#N/A'."""
+    table = read_table(_csv(tmp_path, "x_um,y_um,z_um,R,label\n1,2,3,5,#N/A\n4,5,6,#N/A,NA\n7,8,9,9,AVAL\n"))
+    assert table.colour_gaps["R"].tolist() == [False, True, False] and list(table.labels) == ["", "", "AVAL"]

@@ -96,7 +96,10 @@ def check_output(out: str | os.PathLike, inputs=(), create_folder: bool = False)
 
 def _replaces_input(path: str | os.PathLike, inputs) -> bool:
     """Whether writing ``path`` would replace one of the ``inputs`` (a folder: the files in it)."""
-    target = Path(path).resolve()
+    try:
+        target = Path(path).resolve()
+    except (RuntimeError, OSError):  # Python 3.11 says a loop of links with RuntimeError, 3.13 with OSError
+        raise FdlcError(f"{path}: a loop of symbolic links (it or a folder above it); give another file") from None
     for given in inputs:
         given = Path(given)
         if given.resolve() == target or (given.is_dir() and target.parent == given.resolve()):

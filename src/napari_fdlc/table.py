@@ -227,10 +227,15 @@ def _per_neuron(values, n: int, what: str, dtype) -> np.ndarray:
     return values
 
 
+# How R (write.csv, readr), MATLAB and Excel write a missing name: no neuron is called so
+MISSING_NAMES = frozenset({"NA", "NaN", "nan", "#N/A"})
+
+
 def _clean(name) -> str:
     if name is None or (isinstance(name, float) and np.isnan(name)):
         return ""
-    return str(name).strip()
+    name = str(name).strip()
+    return "" if name in MISSING_NAMES else name
 
 
 def parse_name(raw) -> tuple[str, float]:
@@ -294,7 +299,7 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
     for _ in range(skiprows):
         next(records, None)
     header = next(records, None)
-    while header == []:  # blank lines above the header (pandas skips them too)
+    while header is not None and not any(cell.strip() for cell in header):  # blank lines above the header (pandas skips them too)
         header = next(records, None)
     if header is not None and len(header) == 1:
         for separator, called in ((";", "semicolons"), ("\t", "tabs")):
@@ -381,8 +386,8 @@ def _numeric_column(df: pd.DataFrame, column: str, name: str, first_line: int, a
     # pandas 2's parser is off by one unit in the last place on about a third of the numbers;
     # numpy's (Python's) is exact, so a position or colour written back is the one read.
     values[~bad] = raw.to_numpy(dtype=str)[~bad].astype(np.float64)
-    if allow_empty:  # no reading: an empty cell, or NaN / NA as MATLAB (NeuroPAL_ID) and R write it
-        bad &= ~raw.str.lower().isin(("", "nan", "na")).to_numpy()
+    if allow_empty:  # no reading: an empty cell, or NaN / NA / #N/A as MATLAB (NeuroPAL_ID), R and Excel write it
+        bad &= ~raw.str.lower().isin(("", "nan", "na", "#n/a")).to_numpy()
     if bad.any():
         row = int(np.argmax(bad))
         shown = raw.iloc[row] or "an empty cell"
@@ -474,6 +479,7 @@ def _drop_duplicate_names(labels: np.ndarray, conf: np.ndarray, source: str, say
 
 
 def _from_neuropal_id(df: pd.DataFrame, name: str, first_line: int, names: bool = True, unique_names: bool = True) -> NeuronTable:
+    df = df.rename(columns=lambda c: str(c).strip())  # 'User ID, User Confidence, …' is recognised so too
     ours = df.rename(columns={k: v for k, v in _NPID_TO_OURS.items() if k in df.columns})
     if "User ID" in ours.columns:
         ids = ours["User ID"].astype(str).str.strip()
