@@ -18,7 +18,8 @@ def held_out_lab(worms, lab: str, runs: str | Path | None, max_worms: int | None
     told the lab's majority handedness (by the worms' names), as a user sets ``--chirality``
     for the microscope."""
     panel = make_panel(build_atlas([w for w in worms if w.lab != lab]))
-    tests = [w.table for w in worms if w.lab == lab][:max_worms]
-    majority = np.mean([mirrored_relative_to(panel.atlas, t) for t in tests]) > 0.5
+    tests = [w.table for w in worms if w.lab == lab]
+    majority = np.mean([mirrored_relative_to(panel.atlas, t) for t in tests]) > 0.5  # of the lab, not of the first few
+    tests = tests[:max_worms]
     identifier = Identifier.load(None if runs is None else Path(runs) / f"fold_{lab}" / "model").with_chirality("mirrored" if majority else "same")
     return panel, tests, identifier

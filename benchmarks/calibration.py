@@ -8,8 +8,9 @@ Per held-out lab, with its fold model (``<runs>/<prefix>_<LAB>/model``, made by
 ``benchmarks/leave_one_lab_out.py``; the atlas and panel rebuilt without the lab, as ``fdlc
 evaluate`` does):
 
-1. the expected calibration error of ``auto_conf`` at a grid of temperatures — pairs (the first
-   ``--pairs`` of ``fdlc evaluate``'s pairs) position only and with colour, and the panel with
+1. the expected calibration error of ``auto_conf`` at a grid of temperatures — pairs (``--pairs``
+   of them, drawn as ``fdlc evaluate`` draws its pairs, seed 0: a draw of 12 is not the first 12
+   of its 20, so the top-1 here is not accuracy.md's) position only and with colour, and the panel with
    colour (the lab's first ``--worms`` worms) — beside the temperature the fold fitted on its
    four training labs: whether any one temperature, fitted anywhere, could calibrate every lab;
 2. the panel with colour on the same worms with a share of their neurons dropped at random

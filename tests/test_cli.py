@@ -329,7 +329,7 @@ def test_shared_handedness_says_when_it_does_not_apply(tmp_path, capsys):
     write_table(generate_worm(seed=4), template)
     assert run("label", test, "--template", template, "--shared-handedness", "--out", tmp_path / "o.csv") == 0
     err = capsys.readouterr().err
-    assert "--shared-handedness is for the built-in panel" in err and len(err.strip().splitlines()) == 1
+    assert "--shared-handedness is for several tests named by the built-in panel" in err and len(err.strip().splitlines()) == 1
 
 
 def test_adapt_colours_names_several_recordings_again_and_says_when_it_does_not_apply(tmp_path, capsys):

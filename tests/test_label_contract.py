@@ -396,3 +396,56 @@ def test_a_first_line_of_spaces_above_the_header_is_skipped_as_a_blank_one(tmp_p
     except FdlcError as exc:
         pytest.fail(f"refused: {exc}")
     assert table.xyz[:, 0].tolist() == [1.5, 4.5] and list(table.labels) == ["AVAL", "AVAR"]
+
+
+def _worm(seed: int, n: int | None = None, names: bool = True) -> NeuronTable:
+    worm = generate_worm(seed=seed)
+    if n is not None:
+        worm = worm.subset(np.arange(min(n, len(worm))))
+    if not names:
+        worm = NeuronTable(worm.xyz, worm.colours, source=worm.source)
+    return worm
+
+
+def test_label_cpd_with_weights_that_do_not_exist_is_not_silently_accepted(tmp_path, capsys):
+    """docs/cli.md: `fdlc label --weights PATH` names with other weights, and bad input exits 2
+    with one line; docs/tracking.md: `--method cpd` says in one line that it ignores
+    `--weights` (fdlc track does). Expected from `fdlc label --method cpd --weights
+    /nonexistent/model`: exit 2 naming the missing weights, or one warning line saying --weights
+    is ignored with cpd. Instead: exit 0 and nothing said (label.label_files warns only of
+    --chirality and --no-atlas for cpd, and never checks the weights on that path)."""
+    test, template = tmp_path / "test.csv", tmp_path / "template.csv"
+    write_table(_worm(3, 25, names=False), test)
+    write_table(_worm(4, 25), template)
+    rc = run("label", test, "--template", template, "--method", "cpd", "--no-color",
+             "--weights", tmp_path / "nonexistent" / "model", "--out", tmp_path / "out.csv")
+    err = capsys.readouterr().err
+    assert rc == 2 or "--weights" in err, (rc, err)
+
+
+def test_label_no_atlas_without_a_template_is_not_silently_ignored(tmp_path, capsys):
+    """docs/cli.md: `--no-atlas`: the templates alone (the help: "with --template"); the
+    built-in panel also multiplies in the atlas's own answer. Expected from `fdlc label
+    TEST --no-atlas` (no template): one warning line that --no-atlas does not apply there, as
+    the code does for --adapt-colours, --shared-handedness, and --no-atlas with --method cpd.
+    Instead: the flag is dropped silently (identify.label_neurons ignores use_atlas on the
+    panel path) and stderr is empty."""
+    test = tmp_path / "test.csv"
+    write_table(_worm(5, names=False), test)
+    assert run("label", test, "--no-atlas", "--chirality", "same", "--out", tmp_path / "out.csv") == 0
+    err = capsys.readouterr().err
+    assert "--no-atlas" in err, err
+
+
+def test_label_shared_handedness_with_one_test_says_it_does_not_apply(tmp_path, capsys):
+    """docs/cli.md: the shared handedness is for several tests with --chirality auto and no
+    template; asked for where it cannot apply, the code says so in one line
+    ("--shared-handedness is for the built-in panel with --chirality auto: ignored here"), as
+    --adapt-colours does with fewer than 3 tests. Expected with a single test: that line.
+    Instead: label.label_files checks only the template and --chirality, and one test's
+    --shared-handedness is ignored silently."""
+    test = tmp_path / "test.csv"
+    write_table(_worm(6, names=False), test)
+    assert run("label", test, "--shared-handedness", "--out", tmp_path / "out.csv") == 0
+    err = capsys.readouterr().err
+    assert "--shared-handedness" in err, err

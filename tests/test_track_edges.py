@@ -295,8 +295,8 @@ def test_join_by_time_and_track_settings_refuse_what_they_would_misread(worm, ge
 
 
 def _per_volume(result, origins, reference_origin):
-    return [tracking_accuracy(TrackResult([result.track_id[k]], [], [], []), [origins[k]], reference_origin)["accuracy"]
-            for k in range(len(origins))]
+    return [tracking_accuracy(TrackResult([result.track_id[k]], [], [], []), [origins[k]], reference_origin,
+                              reference_t=None)["accuracy"] for k in range(len(origins))]
 
 
 def _count_full_searches(monkeypatch):

@@ -114,15 +114,21 @@ def label_files(
     for t in test_tables:
         if len(t) < FEW_NEURONS:
             warn(f"{t.source}: only {len(t)} neuron(s): names from so few positions are guesses, confidences too")
-    if method == "cpd" and (chirality != "auto" or not use_atlas):
-        warn("--chirality and --no-atlas are for the fdlc method (cpd tries both handednesses): ignored here")
+    if method == "cpd":
+        ignored = [option for option, given in (("--chirality", chirality != "auto"), ("--no-atlas", not use_atlas),
+                                                ("--weights", weights is not None)) if given]
+        if ignored:
+            warn(f"{' and '.join(ignored)} {'is' if len(ignored) == 1 else 'are'} for the fdlc method "
+                 "(cpd tries both handednesses, with no model): ignored here")
+    elif not use_atlas and not template_tables:
+        warn("--no-atlas is for --template (the built-in panel always joins the atlas's answer): ignored here")
     from .errors import model_files
 
     # The weights (the shipped ones by default) are read too, never written.
     paths = _output_paths(tests, out, [*tests, *(templates or []), *model_files(weights or shipped_weights())])
     applies = not template_tables and chirality == "auto"
-    if shared_handedness and not applies:
-        warn("--shared-handedness is for the built-in panel with --chirality auto: ignored here")
+    if shared_handedness and not (applies and len(test_tables) > 1):
+        warn("--shared-handedness is for several tests named by the built-in panel with --chirality auto: ignored here")
     shared_handedness = applies and len(test_tables) > 1 and shared_handedness is not False
     adapts = not template_tables and can_adapt_colours(test_tables, use_colour)
     if adapt_colours and not adapts:

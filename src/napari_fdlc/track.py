@@ -806,14 +806,19 @@ def simulate_sequence(
     return volumes, origins
 
 
-def tracking_accuracy(result: TrackResult, origins: list[np.ndarray], reference_origin: np.ndarray) -> dict:
+def tracking_accuracy(result: TrackResult, origins: list[np.ndarray], reference_origin: np.ndarray,
+                      reference_t: int | None = 0) -> dict:
     """Against the truth of :func:`simulate_sequence` with the reference ``reference_origin``
     (the origin array of the reference volume): ``accuracy`` = fraction of neurons whose true
     partner is in the reference that get its track ID; ``untracked_right`` = fraction of the
-    others (spurious, or missing from the reference) left untracked (NaN without any)."""
+    others (spurious, or missing from the reference) left untracked (NaN without any). The
+    reference volume itself (``reference_t``, an index into ``origins``; None: not among them)
+    is not scored: its detections are the tracks, a spurious one too, whatever the tracker."""
     where = {o: i for i, o in enumerate(reference_origin) if o >= 0}
     hit = total = free_right = free_total = 0
-    for tid, origin in zip(result.track_id, origins):
+    for t, (tid, origin) in enumerate(zip(result.track_id, origins)):
+        if t == reference_t:
+            continue
         truth = np.array([where.get(o, UNTRACKED) if o >= 0 else UNTRACKED for o in origin])
         has = truth >= 0
         hit += int((tid[has] == truth[has]).sum())
