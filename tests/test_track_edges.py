@@ -417,14 +417,6 @@ def test_cpd_tracks_a_recording_with_one_nearly_empty_time_point(tmp_path, worm,
         assert (df["t"] == 3).sum() == 2
 
 
-GENTLE_h = replace(GENTLE, frames=3)
-
-
-def _sequence_csv_h(volumes, path):
-    write_table(join_by_time(volumes).drop(columns=["label"]), path)
-    return path
-
-
 def test_the_first_reference_given_is_the_first_reference(tmp_path, gentle, untrained_weights):
     """docs/tracking.md: "Track IDs are the row indices of the first reference" (and "the first
     one's names win"). `--reference-t 0 --reference R.csv` names t=0 first, so at t=0 every
@@ -433,7 +425,7 @@ def test_the_first_reference_given_is_the_first_reference(tmp_path, gentle, untr
     the IDs are R.csv's rows (here R.csv is t=0 in reverse order: every ID at t=0 is reversed)."""
     volumes, _ = gentle
     volumes = volumes[:2]
-    src = _sequence_csv_h(volumes, tmp_path / "seq.csv")
+    src = _sequence_csv(volumes, tmp_path / "seq.csv")
     reversed_t0 = tmp_path / "reversed_t0.csv"
     write_table(NeuronTable(volumes[0].xyz[::-1].copy()), reversed_t0)
     out = tmp_path / "tracks.csv"
@@ -451,7 +443,7 @@ def test_a_reference_that_is_the_first_volume_is_warned_of_once(tmp_path, gentle
     the same warning line is printed twice."""
     volumes, _ = gentle
     pixels = [NeuronTable(v.xyz * [4, 4, 1]) for v in volumes]  # pixel coordinates, not µm
-    src = _sequence_csv_h(pixels, tmp_path / "px.csv")
+    src = _sequence_csv(pixels, tmp_path / "px.csv")
     out = tmp_path / "tracks.csv"
     assert main(["track", str(src), "--reference-t", "0", "--method", "geometry", "--quiet", "--out", str(out)]) == 0
     lines = [line for line in capsys.readouterr().err.splitlines() if "must be micrometres" in line]
@@ -558,3 +550,65 @@ def test_a_reference_t_left_out_of_a_recording_is_said_so(tmp_path, small_worm, 
                  "--out", str(tmp_path / "tracks.csv")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and "no nucleus was found at that time point" in err[-1], err
+
+
+def test_geometry_leaves_a_time_point_of_under_three_nuclei_untracked(tmp_path, gentle):
+    """docs/tracking.md: with `--method cpd` and `geometry`, "a time point of fewer than 3
+    distinct nuclei (out of focus) is left untracked by them, and the next one goes on from the
+    one before". CPD does so; the geometric chain only checks that before it has started
+    (`_track_geometry`: `warp is None and _too_few_to_register(vol)`): a later out-of-focus
+    time point of 6 rows at 2 positions gets 6 different tracks, each with track_conf 1
+    ("certain"), though at most 2 of them can be right."""
+    volumes, _ = gentle
+    blurred = list(volumes)
+    blurred[2] = NeuronTable(np.repeat(volumes[2].xyz[:2], 3, axis=0))
+    src = _sequence_csv(blurred, tmp_path / "seq.csv")
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(src), "--method", "geometry", "--quiet", "--out", str(out)]) == 0
+    df = pd.read_csv(out)
+    at_2 = df[df["t"] == 2]
+    assert len(at_2) == 6
+    assert (at_2["track_id"] == -1).all(), at_2[["neuron_index", "x_um", "track_id", "track_conf"]].to_string()
+
+
+def test_a_bad_sequence_table_is_refused_before_the_models_load(tmp_path, monkeypatch, capsys):
+    """docs/tracking.md: bad input (a non-numeric t, ...) "is refused with one line ... before
+    any work" (and _cli_track.run: "Validate every input before any model work"). The table
+    sequence is read only after the identification model is loaded (`read_sequence` comes
+    after `default_identifier()`): a t cell of 'abc' was refused after ~6 s of torch import and
+    model load (3.5 s with --method geometry)."""
+    import napari_fdlc.identify as identify
+
+    loaded = []
+
+    def spy(*args, **kwargs):
+        loaded.append(True)
+        raise FdlcError("the model was loaded before the input was read")
+
+    monkeypatch.setattr(identify, "default_identifier", spy)
+    src = tmp_path / "seq.csv"
+    src.write_text("t,x_um,y_um,z_um\n0,1,2,3\n0,4,5,6\nabc,1,2,3\n")
+    out = tmp_path / "tracks.csv"
+    code = main(["track", str(src), "--threads", "1", "--quiet", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and "column 't'" in err, err
+    assert not loaded, "the model was loaded before the sequence table was validated"
+
+
+def test_a_table_sequences_measured_columns_reach_the_output(tmp_path, gentle):
+    """tracking.md offers `fdlc segment recording.ome.tif --out neurons.csv` ("or first the
+    neuron tables only: one CSV with a t column") beside `fdlc track recording.ome.tif`, whose
+    output keeps what the segmentation measured (GFP: "the activity trace of each track");
+    neuron_table.md: "Other columns are kept". Tracking that CSV drops every column but t and the
+    positions (`_cli_track.run` joins the measured columns back for a recording only): the GFP
+    trace, the colours and any column of the user's are lost."""
+    volumes, _ = gentle
+    src = tmp_path / "neurons.csv"
+    df = join_by_time(volumes).drop(columns=["label"])
+    df["GFP"] = np.arange(len(df), dtype=float) + 0.5
+    df.to_csv(src, index=False)
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(src), "--method", "geometry", "--quiet", "--out", str(out)]) == 0
+    tracks = pd.read_csv(out)
+    assert "GFP" in tracks.columns, tracks.columns.tolist()
+    assert np.allclose(tracks["GFP"].to_numpy(), df["GFP"].to_numpy())

@@ -95,6 +95,19 @@ def run(args: argparse.Namespace) -> int:
     in_order = getattr(args, "references", None) or []
     from_file = {k: read_volume(r, "a reference is one volume: give one time point (or name it with --reference-t)")
                  for k, (kind, r) in enumerate(in_order) if kind == "reference"}
+
+    def references_in(seq) -> list:
+        return [from_file[k] if kind == "reference" else _volume_at(seq, raw) for k, (kind, raw) in enumerate(in_order)]
+
+    recording = _image_recording(args.inputs)
+    if recording is None:  # a table sequence is read before the models load
+        from ._cli_segment import stack_options_given
+
+        ignored = stack_options_given(args)
+        if ignored:  # a table in pixels is not converted by --voxel-size: said, not silently dropped
+            warn(f"{', '.join(ignored)}: for an image recording (segmented first); ignored with a table sequence")
+        seq = read_sequence(args.inputs)
+        references = references_in(seq)
     # The models next: weights that cannot be read are refused before a recording's segmentation.
     identifier = follower = None
     if args.method == "fdlc":
@@ -107,15 +120,7 @@ def run(args: argparse.Namespace) -> int:
         identifier = (Identifier.load(args.weights) if args.weights else default_identifier()).with_chirality(args.chirality)
         if args.tracking_weights and args.follow_with == "tracking":
             follower = Identifier.load(args.tracking_weights)
-    recording = _image_recording(args.inputs)
-    if recording is None:
-        from ._cli_segment import stack_options_given
-
-        ignored = stack_options_given(args)
-        if ignored:  # a table in pixels is not converted by --voxel-size: said, not silently dropped
-            warn(f"{', '.join(ignored)}: for an image recording (segmented first); ignored with a table sequence")
-        seq = read_sequence(args.inputs)
-    else:
+    if recording is not None:
         from ._cli_segment import segment_recording
         from .track import Sequence
 
@@ -131,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
             if kind == "reference_t" and _reference_time(raw) not in times:
                 raise FdlcError(f"--reference-t {raw}: no nucleus was found at that time point of the recording "
                                 "(it is left out); choose another")
-    references = [from_file[k] if kind == "reference" else _volume_at(seq, raw) for k, (kind, raw) in enumerate(in_order)]
+        references = references_in(seq)
     # a reference that is the first volume itself is warned of once
     warn_implausible_scales([seq.volumes[0], *(r for r in references if r is not seq.volumes[0])])
     start = time.perf_counter()
@@ -143,13 +148,14 @@ def run(args: argparse.Namespace) -> int:
 
     result = track(seq, references or None, identifier, settings, progress, method=args.method, follower=follower)
     frame = result.frame(seq.volumes)
-    if recording is not None:  # what the segmentation measured, e.g. each neuron's GFP per time point
-        import pandas as pd
+    # the volumes' other columns: what the segmentation (or the table) measured, e.g. each
+    # neuron's GFP per time point, the activity trace of its track
+    import pandas as pd
 
-        from .track import join_by_time
+    from .track import join_by_time
 
-        measured = join_by_time(seq.volumes, seq.times).drop(columns=["t", "x_um", "y_um", "z_um", "label"])
-        frame = pd.concat([frame, measured.drop(columns=[c for c in measured if c in frame])], axis=1)
+    measured = join_by_time(seq.volumes, seq.times).drop(columns=["t", "x_um", "y_um", "z_um", "label"])
+    frame = pd.concat([frame, measured.drop(columns=[c for c in measured if c in frame])], axis=1)
     write_table(frame, out)
     return 0
 

@@ -695,7 +695,7 @@ def _track_geometry(seq: Sequence, tables: list[NeuronTable], s: TrackSettings, 
     result = TrackResult([], [], ref.table.label_strings(), [], list(seq.times), list(seq.sources))
     warp = None
     for k, vol in enumerate(seq.volumes):
-        if warp is None and _too_few_to_register(vol):  # nothing to start the chain from: the next one
+        if _too_few_to_register(vol):  # as CPD: untracked, and the chain goes on from the one before
             choice = np.full(len(vol), UNTRACKED)
         else:
             if warp is None:
