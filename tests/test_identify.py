@@ -980,3 +980,42 @@ def test_a_device_that_cannot_run_the_model_is_a_model_error(untrained_weights):
     device; it was torch's RuntimeError (AssertionError for cuda) from deep inside."""
     with pytest.raises(ModelError, match="device 'tpu'"):
         Identifier.load(untrained_weights, device="tpu")
+
+
+def test_a_fixed_name_settles_the_handedness_beside_a_template_with_refinement_steps(shipped):
+    """README: "a fixed prior keeps the reference's handedness unless --chirality or a name the
+    user fixed says otherwise". A mirrored recording named against a template, with one of its
+    left/right neurons fixed (row 0 is ADAL), must be placed mirrored whatever the model's
+    ``refine_steps`` (a documented inference setting, 1 in the test suite's own model card).
+    It is with the shipped refine_steps=0 (top-1 5 % -> 38 %), but Identifier.match_many only
+    applies the fixed names' choice `if ... not self.settings.refine_steps`: with
+    refine_steps=1 the fixed name is silently ignored, the worm stays "same" (left/right swapped,
+    5 % top-1)."""
+    worm, template = generate_worm(seed=3), generate_worm(seed=2)
+    mirrored = NeuronTable(worm.xyz * [1, 1, -1], worm.colours, source="mirrored")
+    fixed = {0: worm.labels[0]}
+    assert worm.labels[0] == "ADAL"  # the set-up: a left/right name, known to the template
+    # the set-up: with the shipped settings the fixed name settles it
+    assert shipped.label(mirrored, [template], fixed=fixed).info["templates"][0]["mirrored"]
+    refined = shipped.with_settings(refine_steps=1).label(mirrored, [template], fixed=fixed)
+    assert refined.info["templates"][0]["mirrored"], "the fixed left/right name was ignored with refine_steps=1"
+
+
+def test_label_panel_many_takes_first_answers_made_with_the_handedness_given(shipped):
+    """label_panel_many(first=...) takes "the tests' label_panel answers when already made".
+    Answers made by an identifier told the handedness (with_chirality("same"), as a lab that
+    knows its microscope does) carry one placement's evidence only; on an "auto" identifier the
+    shared-handedness vote should count them as abstaining (or refuse them in one FdlcError
+    line). Instead handedness_evidence indexes willingness[1] and the call ends in an
+    IndexError traceback."""
+    panel = load_panel()
+    tests = []
+    for seed in (3, 4):
+        w = generate_worm(seed=seed)
+        tests.append(NeuronTable(w.xyz, w.colours, source=f"worm{seed}"))
+    first = [shipped.with_chirality("same").label_panel(t, panel) for t in tests]
+    try:
+        results = shipped.label_panel_many(tests, panel, first=first)
+    except FdlcError:
+        return
+    assert len(results) == len(tests)

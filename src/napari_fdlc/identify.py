@@ -385,6 +385,12 @@ class Identifier:
             best = int(np.argmax(willingness))
             results.append({"best": best, "willingness": willingness, "log_p": lps[best], "all_log_p": lps,
                             "candidates": cands, "moved": cands[best], "affine": np.vstack([np.eye(3), np.zeros((1, 3))])})
+        self._refine(a, results, steps, template_colour, test_colours)
+        return results
+
+    def _refine(self, a: np.ndarray, results: list[dict], steps: int, template_colour, test_colours) -> None:
+        """``steps`` affine passes of :meth:`_align`'s ``results`` (in place) onto the template ``a``."""
+        m = a.shape[0]
         for _ in range(steps):
             for r in results:
                 p = np.exp(r["log_p"][:, :m])
@@ -396,7 +402,6 @@ class Identifier:
             moved = [r["moved"] for r in results]
             for r, lp in zip(results, self._forward_many(a, moved, template_colour, test_colours)):
                 r["log_p"] = lp
-        return results
 
     @one_blas_thread
     def place(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool = True):
@@ -443,12 +448,17 @@ class Identifier:
         is the same answer without the temperature: what the names are assigned on."""
         found, model_saw_colour = self.search(template, tests, use_colour)
         colours = [self._colour_evidence(template, test, model_saw_colour) if use_colour else None for test in tests]
-        agreements = []
-        for f in found:
+        agreements, rechosen = [], []
+        for k, f in enumerate(found):
             agreements.append(_agreement_with_fixed([f["all_log_p"]], [template], fixed))
-            if agreements[-1] is not None and not self.settings.refine_steps:
-                f["best"] = _best_given_fixed(f["willingness"], f["mirrored"], agreements[-1])
-                f["log_p"], f["moved"] = f["all_log_p"][f["best"]], f["candidates"][f["best"]]
+            best = f["best"] if agreements[-1] is None else _best_given_fixed(f["willingness"], f["mirrored"], agreements[-1])
+            if best != f["best"]:
+                f["best"], f["log_p"], f["moved"] = best, f["all_log_p"][best], f["candidates"][best]
+                f["affine"] = np.vstack([np.eye(3), np.zeros((1, 3))])
+                rechosen.append(k)
+        if rechosen and self.settings.refine_steps:  # refined again, from the placement the fixed names chose
+            tc, sc = self._model_colours(template, [tests[k] for k in rechosen], use_colour)
+            self._refine(found[0]["template_xyz"], [found[k] for k in rechosen], self.settings.refine_steps, tc, sc)
         self._warp_refine(template, tests, found, colours, use_colour)
         out = []
         for f, colour, agreement in zip(found, colours, agreements):
@@ -981,7 +991,9 @@ def handedness_evidence(result: Labelling, mirror_penalty: float) -> tuple[float
     """Of a :meth:`Identifier.label_panel` answer made on ``auto``: its mirrored placement's
     score minus the other's, by the model's willingness to match (without the prior) and by
     the registration's likelihood."""
-    willingness, registration = result.info["willingness"], result.info["registration"]
+    willingness, registration = result.info.get("willingness") or (), result.info.get("registration") or ()
+    if len(willingness) < 2 or len(registration) < 2:  # made in one handedness (given, or a template's): abstains
+        return 0.0, 0.0
     return willingness[1] - willingness[0] + mirror_penalty, registration[1] - registration[0]
 
 
