@@ -537,3 +537,82 @@ def test_a_relative_session_dir_is_taken_from_where_napari_started(labelled_view
     viewer2.open_sample("napari-fdlc", "neuropal")
     restored = [lyr for lyr in viewer2.layers if lyr.name.endswith("neuron IDs")]
     assert restored, f"the session saved in {saved} was not restored after the working folder changed"
+
+
+def _blank_recording(viewer):
+    """A recording made in napari (a script, the console, another reader): one t, z, y, x layer
+    in µm in which no nucleus can be found."""
+    viewer.add_image(np.zeros((2, 8, 32, 32), np.float32), name="blank", scale=(1, 1.5, 0.35, 0.35))
+
+
+def test_closing_the_viewer_while_tracking_runs_raises_no_traceback(track_widget, tmp_path, qtbot):
+    """Close napari while a tracking job runs: the job should end quietly (its result dropped).
+    Instead, when the worker finishes, TrackWidget._set_busy touches the deleted Track button:
+    'RuntimeError: wrapped C/C++ object of type QPushButton has been deleted' in the Qt event
+    loop (and the widget's idle signal is never emitted, so wait() hangs until its timeout)."""
+    viewer, widget = track_widget
+    widget.set_sequence(_moving_csv(tmp_path / "s.csv", _random_named_worm(30, 1), frames=6))
+    with qtbot.capture_exceptions() as exceptions:
+        widget.run(wait=False)
+        viewer.close()
+        qtbot.waitUntil(lambda: not widget._busy, timeout=60_000)
+        qtbot.wait(100)
+    assert not exceptions, [f"{type(e[1]).__name__}: {e[1]}" for e in exceptions]
+
+
+def test_a_recording_without_nuclei_is_named_as_the_user_knows_it(track_widget):
+    """A recording made in napari in which no nucleus is found: the one-line error should name the
+    recording ('blank'). It names the internal image key instead: 'layer:05fa2bc5cc:blank: no
+    nuclei found; ...' (the key with its data fingerprint, passed as the stack's source)."""
+    viewer, widget = track_widget
+    _blank_recording(viewer)
+    assert widget.run() is None
+    assert widget.last_error and "no nuclei found" in widget.last_error
+    assert not widget.last_error.startswith("layer:"), widget.last_error
+
+
+def test_a_failed_run_does_not_show_a_full_progress_bar(track_widget):
+    """A job that fails after its segmentation (no nucleus found in any time point) should not
+    leave the bar at 100 % beside the error (Auto-label resets it to 0 on an error). The bar stays
+    full: _set_busy(False) leaves it at the last progress value, the segmentation's 2/2."""
+    viewer, widget = track_widget
+    _blank_recording(viewer)
+    assert widget.run() is None and widget.last_error
+    assert widget.progress_bar.value() < 100, (widget.progress_bar.value(), widget.last_error)
+
+
+def test_saved_track_points_keep_each_neurons_measured_columns(track_widget, tmp_path):
+    """`fdlc track` writes each neuron's other columns (colours, GFP: the activity trace of each
+    track; tracking.md's table, 'the input's other columns'); the Track widget's points saved
+    with the plugin's writer ('a sequence table that fdlc track reads', gui.md) should too.
+    They are lost: track_layers keeps only t, track_id, track_conf and name as features, so the
+    saved CSV has no GFP (nor R, G, B: tracked again from it, the colour evidence is gone)."""
+    from napari_fdlc.track import join_by_time
+
+    viewer, widget = track_widget
+    worm = _random_named_worm(30, 1)
+    volumes = [NeuronTable(worm.xyz + 0.2 * k, worm.colours) for k in range(3)]
+    df = join_by_time(volumes).drop(columns=["label"])
+    df["GFP"] = np.arange(len(df), dtype=float) + 0.5
+    write_table(df, tmp_path / "seq.csv")
+    widget.set_sequence(tmp_path / "seq.csv")
+    _, points = widget.run()
+    viewer.layers.selection = {points}
+    viewer.layers.save(str(tmp_path / "saved.csv"), selected=True, plugin="napari-fdlc")
+    saved = pd.read_csv(tmp_path / "saved.csv")
+    assert {"R", "G", "B", "GFP"} <= set(saved.columns), list(saved.columns)
+    assert np.allclose(saved["GFP"], df["GFP"])
+
+
+def test_set_recording_by_the_name_of_one_of_its_layers(track_widget, recording):
+    """tracks.py's docstring: `w.set_recording(...)  # or the image layers of a recording (its file
+    or layer name)`. A recording opened with napari-fdlc has layers 'recording [R]', … '[W]';
+    set_recording('recording [W]') raises "no recording 'recording [W]' in the viewer": only
+    the name in the combo box ('recording') or the file is matched."""
+    from napari_fdlc._napari._io import read_stack_layers
+
+    viewer, widget = track_widget
+    for data, kwargs, kind in read_stack_layers(str(recording[0])):
+        getattr(viewer, f"add_{kind}")(data, **kwargs)
+    widget.set_recording("recording [W]")
+    assert widget.source_combo.currentText() == "recording: recording"

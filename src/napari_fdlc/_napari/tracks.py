@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from qtpy.compat import isalive
 from qtpy.QtCore import QObject, QTimer, Signal
 from qtpy.QtWidgets import (
     QCheckBox,
@@ -53,7 +54,7 @@ from qtpy.QtWidgets import (
 from ..errors import FdlcError, warnings_to
 from ._io import image_key_of, notify_warning
 from ._jobs import wait_until_idle
-from ._layers import META_KEY, _short_name, is_image_layer, layer_role, stack_from_layers
+from ._layers import META_KEY, _blank, _plain_features, _short_name, is_image_layer, layer_role, stack_from_layers
 from ._warm_up import start_warm_up
 
 SEQUENCE_FILE = "the sequence file below"
@@ -82,7 +83,12 @@ def track_layers(result, sequence, name: str = "sequence", frames: list[int] | N
     time points, a table sequence's frame numbers: :func:`frames_of`) or else each volume's
     index in ``sequence``, shown at ``time_axis`` (scale, translate: the recording's own, so
     that each frame lies over its image; ``image_key``: that recording's, kept in the metadata:
-    its voxel size may not change under them)."""
+    its voxel size may not change under them). The points keep each neuron's other columns
+    (colours, GFP, a folder's ``file``), so that they are saved as ``fdlc track`` writes them."""
+    import pandas as pd
+
+    from ..track import join_by_time
+
     frames = list(range(len(sequence))) if frames is None else frames
     rows, points, feats = [], [], {"t": [], "track_id": [], "track_conf": [], "name": []}
     for k, (vol, tid, conf) in enumerate(zip(sequence.volumes, result.track_id, result.confidence)):
@@ -95,6 +101,11 @@ def track_layers(result, sequence, name: str = "sequence", frames: list[int] | N
         feats["name"].extend(names)
         tracked = tid >= 0
         rows.append(np.column_stack([tid[tracked], np.full(tracked.sum(), frames[k]), zyx[tracked]]))
+    measured = join_by_time(sequence.volumes, sequence.times).drop(columns=["t", "x_um", "y_um", "z_um", "label"])
+    if any(sequence.sources):
+        measured["file"] = np.repeat(np.asarray(sequence.sources, dtype=object), [len(v) for v in sequence.volumes])
+    features = pd.concat([pd.DataFrame(feats), _plain_features(measured.drop(columns=[c for c in measured if c in feats]))],
+                         axis=1)
     data = np.vstack(rows) if rows else np.zeros((0, 5))
     data = data[np.lexsort((data[:, 1], data[:, 0]))]  # napari wants tracks sorted by ID, then time
     track_names = {int(i): n for i, n in enumerate(result.names)}
@@ -109,9 +120,10 @@ def track_layers(result, sequence, name: str = "sequence", frames: list[int] | N
                      "axis_labels": ("t", "z", "y", "x"), "metadata": meta, **placed}, "tracks")
     # a point added by hand is no track's (napari would copy the last point's track and name);
     # the writer takes its time from its frame
-    defaults = {"t": sequence.times[0], "track_id": -1, "track_conf": np.nan, "name": ""}
+    defaults = {**{c: _blank(features[c]) for c in features.columns},
+                "t": sequence.times[0], "track_id": -1, "track_conf": np.nan, "name": ""}
     pts = (np.vstack(points), {
-        "name": f"{name} neurons", "features": feats, "feature_defaults": defaults, "size": 3.0, "face_color": colours,
+        "name": f"{name} neurons", "features": features, "feature_defaults": defaults, "size": 3.0, "face_color": colours,
         "border_color": "white", "border_width": 0.05, "out_of_slice_display": False,
         "text": {"string": text, "size": 8, "color": "white", "anchor": "upper_left"},
         "axis_labels": ("t", "z", "y", "x"), "metadata": meta, **placed,
@@ -321,7 +333,8 @@ class TrackWidget(QWidget):
                 return False
 
         matches = [t for t, (k, _) in recordings.items() if same_file(k)] or [
-            t for t in recordings if t == name or t == f"recording: {name}" or t == f"recording: {_short_name(str(name))}"]
+            t for t in recordings if t == name or t == f"recording: {name}" or t == f"recording: {_short_name(str(name))}"] or [
+            t for t, (_, channels) in recordings.items() if any(layer.name == name for layer in channels.values())]
         if not matches:
             raise FdlcError(f"no recording '{name}' in the viewer (open a stack with a time axis)")
         self.source_combo.setCurrentText(matches[0])
@@ -378,7 +391,8 @@ class TrackWidget(QWidget):
             if channels is not None:
                 from ..segment import found_time_points, segment_series
 
-                recording = stack_from_layers(channels, key, recording=True)
+                # named in messages as the user knows it: its file, or its name in napari (not the key)
+                recording = stack_from_layers(channels, name if key.startswith("layer:") else key, recording=True)
                 tables = segment_series(recording, diameter,
                                         progress=lambda done, total: report("segmenting", done, total))
                 frames = found_time_points(tables, recording.source, "check the nucleus diameter and the voxel size")
@@ -436,7 +450,13 @@ class TrackWidget(QWidget):
         return wait_until_idle(lambda: self._busy, self._signals.idle, timeout)
 
     # ------------------------------------------------------------------------------------------
+    def _closed(self) -> bool:
+        """Whether napari was closed under the job (its widgets are gone: the result is dropped)."""
+        return not isalive(self.run_button)
+
     def _show(self, sequence, result, frames, name: str, key: str, time_axis: tuple[float, float]) -> None:
+        if self._closed():
+            return
         try:
             self._add_layers(sequence, result, frames, name, key, time_axis)
         except Exception as exc:  # on the GUI thread, after the worker: said, not a traceback
@@ -455,8 +475,9 @@ class TrackWidget(QWidget):
         # only the neurons of one z plane would show), starting at the first time point.
         self.viewer.dims.ndisplay = 3
         self.viewer.dims.set_current_step(0, 0)
-        tracked = np.mean([(t >= 0).mean() for t in result.track_id])
-        self._summary = f"{len(sequence)} time points, {len(result.names)} tracks; {100 * tracked:.0f} % of neurons tracked"
+        tracked = sum(int((t >= 0).sum()) for t in result.track_id) / max(sum(len(t) for t in result.track_id), 1)
+        self._summary = (f"{len(sequence)} time point{'s' * (len(sequence) != 1)}, {len(result.names)} tracks; "
+                         f"{100 * tracked:.0f} % of the neurons tracked")
         self.status.setText(self._summary)
         if len(made) == 1:
             notify_warning(f"{name}: no neuron could be tracked (shown untracked); check the reference")
@@ -464,7 +485,8 @@ class TrackWidget(QWidget):
     def _on_error(self, exc: Exception) -> None:
         if isinstance(exc, _Cancelled):
             self.cancelled = True
-            self.status.setText("cancelled; the layers shown are unchanged")
+            if not self._closed():
+                self.status.setText("cancelled; the layers shown are unchanged")
         elif isinstance(exc, FdlcError):
             self._error(str(exc))
         else:
@@ -472,7 +494,10 @@ class TrackWidget(QWidget):
 
     def _error(self, message: str) -> None:
         self.last_error = message
+        if self._closed():
+            return
         self.status.setText(message)
+        self.progress_bar.setValue(0)
         try:
             from napari.utils.notifications import show_error
 
@@ -482,6 +507,13 @@ class TrackWidget(QWidget):
 
     def _set_busy(self, busy: bool) -> None:
         self._busy = busy
+        if not self._closed():  # napari closed under the job: nothing to show it in
+            self._show_busy(busy)
+        if not busy:
+            self._worker = None
+            self._signals.idle.emit()
+
+    def _show_busy(self, busy: bool) -> None:
         self.run_button.setEnabled(not busy)
         self.cancel_button.setEnabled(busy)
         if busy:
@@ -491,10 +523,9 @@ class TrackWidget(QWidget):
             self.progress_bar.setValue(100)
             if self._cancel.is_set():  # Cancel came after the result was in: said as it is
                 self.status.setText(f"{self._summary} (done before it could be cancelled)")
-        if not busy:
-            self._worker = None
-            self._signals.idle.emit()
 
     def _on_progress(self, doing: str, done: int, total: int) -> None:
+        if self._closed():
+            return
         self.progress_bar.setValue(int(round(100 * done / max(total, 1))))
         self.status.setText(f"{doing}… {done}/{total} volumes")
