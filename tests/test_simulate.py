@@ -206,3 +206,15 @@ def test_simulate_worm_keeps_a_missing_colour_reading_missing():
     row = int(np.flatnonzero(synth.origin == 3)[0])
     written = synth.table.to_dataframe()["G"].iloc[row]
     assert np.isnan(written), f"the copy of the neuron without a G reading has G = {written}"
+
+
+def test_a_synthetic_copy_carries_no_voxel_coordinates_of_the_old_positions(worm):
+    """A source with x_px, y_px, z_px (our exports) or NeuroPAL_ID's Internal X (px) gave its
+    copies those columns unchanged beside the moved positions: stale voxel coordinates (napari's
+    reader refused the mismatched ratio). Other columns still travel with their neurons."""
+    extra = pd.DataFrame({"x_px": np.arange(len(worm)), "Internal Z (slice)": 1.0, "score": np.arange(len(worm)) / 10})
+    source = NeuronTable(worm.xyz, worm.colours, worm.labels, extra=extra)
+    synth = simulate_worm(source, 0)
+    assert list(synth.table.extra.columns) == ["score"]
+    real = synth.origin >= 0
+    assert np.allclose(synth.table.extra["score"][real].astype(float), synth.origin[real] / 10)

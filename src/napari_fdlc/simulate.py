@@ -23,7 +23,7 @@ import numpy as np
 
 from .errors import TableError
 from .geometry import canonical_frame
-from .table import NeuronTable
+from .table import PIXEL_COLUMNS, NeuronTable
 
 
 @dataclass
@@ -162,8 +162,11 @@ def simulate_worm(
             v[~real] = rng.choice(read, (~real).sum())
         colours[ch] = v
     extra = None
-    if len(table.extra.columns):  # the real neurons' other columns go with them; empty on spurious ones
-        extra = table.extra.astype(object).reindex(np.where(real, origin, -1)).reset_index(drop=True)
+    # the real neurons' other columns go with them (empty on spurious ones), but not the voxel
+    # coordinates of the positions they had
+    travel = table.extra.drop(columns=[c for c in PIXEL_COLUMNS if c in table.extra.columns])
+    if len(travel.columns):
+        extra = travel.astype(object).reindex(np.where(real, origin, -1)).reset_index(drop=True)
     return SyntheticWorm(NeuronTable(pts, colours, labels, conf, extra, source=f"synthetic({table.source})"), origin)
 
 

@@ -38,6 +38,9 @@ _NPID_TO_OURS = {
     "Z-Scored Red": "R", "Z-Scored Green": "G", "Z-Scored Blue": "B", "Z-Scored White": "W",
 }
 
+# A position's voxel coordinates, as our exports and NeuroPAL_ID's write them beside µm
+PIXEL_COLUMNS = ("x_px", "y_px", "z_px", "Internal X (px)", "Internal Y (px)", "Internal Z (slice)")
+
 
 @dataclass
 class NeuronTable:
