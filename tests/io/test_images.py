@@ -774,3 +774,16 @@ def test_a_jpeg2000_image_is_refused_as_an_unsupported_format(tmp_path):
     message = _one_line(exc.value)
     assert "ND2 file" not in message and "TIFF" in message, message
     assert not images.is_image_file(path)
+
+
+def test_a_stack_of_bare_pages_given_more_axes_says_how_to_save_it(tmp_path):
+    """A TIFF of bare pages (other software's page stack, no shape recorded) read with --axes
+    TZCYX was refused as 'axes given for an image with 3 dimensions', which does not say why or
+    what to do (image_formats.md promised that --axes reads it): the pages do not record how
+    they split into t, z and c."""
+    path = tmp_path / "bare.tif"
+    with tifffile.TiffWriter(path) as writer:
+        for _ in range(12):
+            writer.write(np.zeros((16, 16), np.uint16), metadata=None, contiguous=False)
+    with pytest.raises(ImageError, match="12 pages do not record how they split into TZC: save it as an ImageJ hyperstack"):
+        read_series(path, axes="TZCYX", voxel_size=(1.0, 0.3, 0.3))

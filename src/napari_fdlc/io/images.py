@@ -480,8 +480,13 @@ def read_tiff(
     if axes is not None:
         axes = axes.upper()
         if len(axes) != data.ndim:
+            # pages with no recorded shape (other software's page stacks) cannot be split: how
+            # many are z, c or t is not written anywhere
+            bare = len(axes) > data.ndim and re.fullmatch(r"[QI]YX", file_axes)
             raise ImageError(
                 f"{source}: axes '{axes}' given for an image with {data.ndim} dimensions {tuple(data.shape)}"
+                + (f"; its {data.shape[0]} pages do not record how they split into {axes[:-2]}: save it as an ImageJ "
+                   "hyperstack or OME-TIFF (Fiji: Image > Hyperstacks > Stack to Hyperstack, then save)" if bare else "")
             )
         file_axes = axes  # letters used twice are refused by finish_stack
     elif re.search(r"[QI]", file_axes):
