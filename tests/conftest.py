@@ -21,6 +21,15 @@ def other_worm() -> NeuronTable:
     return generate_worm(seed=2)
 
 
+@pytest.fixture
+def gap_table() -> NeuronTable:
+    """20 named neurons with R, G, B, W; neuron 3 has no R reading."""
+    rng = np.random.default_rng(0)
+    colours = {c: rng.uniform(1, 2, 20) for c in ("R", "G", "B", "W")}
+    colours["R"][3] = np.nan
+    return NeuronTable(rng.uniform(0, 40, (20, 3)), colours, labels=np.array([f"N{k}" for k in range(20)], dtype=object))
+
+
 @pytest.fixture(scope="session")
 def untrained_weights(tmp_path_factory):
     import torch

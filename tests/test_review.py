@@ -397,3 +397,16 @@ def test_neurons_added_or_moved_by_hand_are_remembered(tmp_path):
     del d["by_hand"]
     (tmp_path / "old.json").write_text(json.dumps(d))
     assert ReviewSession.load(tmp_path / "old.json").by_hand.all()
+
+
+def test_review_neuropal_export_leaves_a_colour_gap_empty(gap_table, tmp_path):
+    """A neuron without an R reading, in a review session exported as a NeuroPAL_ID CSV,
+    should have its 'Z-Scored Red' cell empty (as the fdlc export and write_neuropal_id do
+    since session 35). ReviewSession.export builds a new NeuronTable from the filled
+    ``t.colours``, so the gap is lost and the volume's median is written as a measurement."""
+    from napari_fdlc.review import ReviewSession
+
+    session = ReviewSession(gap_table)
+    out = session.export(tmp_path / "npid.csv", format="neuropal_id")
+    back = read_table(out)
+    assert "R" in back.colour_gaps and back.colour_gaps["R"][3], "the gap came back as a reading"

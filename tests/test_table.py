@@ -299,3 +299,13 @@ def test_excels_na_is_no_reading_and_no_name(tmp_path):
     finite number', and a name so written named a neuron '#N/A'."""
     table = read_table(_csv(tmp_path, "x_um,y_um,z_um,R,label\n1,2,3,5,#N/A\n4,5,6,#N/A,NA\n7,8,9,9,AVAL\n"))
     assert table.colour_gaps["R"].tolist() == [False, True, False] and list(table.labels) == ["", "", "AVAL"]
+
+
+def test_a_first_line_of_spaces_keeps_error_line_numbers_right(tmp_path):
+    """Since session 35 a first line of spaces is read as a blank line. An error in a row
+    below must name that row's own line (here line 4, as an editor shows it); it names line 3:
+    table._record_lines counts the line of spaces as the header and gives up on the count."""
+    path = tmp_path / "t.csv"
+    path.write_text("   \nx_um,y_um,z_um,label\n1,2,3,AVAL\n4,5,x,AVAR\n", encoding="utf-8")
+    with pytest.raises(TableError, match=r"line 4\b"):
+        read_table(path)

@@ -432,3 +432,15 @@ def test_tracking_accuracy_untracked_right_with_nothing_to_leave_untracked():
     score = tracking_accuracy(_track_result([[0, 1, 2], [2, 0, 1]]), origins, origins[0])
     assert score["accuracy"] == 1.0
     assert score["untracked_right"] == 1.0 or np.isnan(score["untracked_right"]), score
+
+
+def test_simulate_sequence_copies_no_reading_as_none(gap_table):
+    """simulate_sequence's copy of a neuron without a colour reading should have none (as
+    simulate_worm's copies since session 35); it copies the filled median times noise, a
+    measurement nobody made (track.simulate_sequence reads ``table.colours``)."""
+    from napari_fdlc.track import SequenceParams, simulate_sequence
+
+    table = gap_table
+    volumes, origins = simulate_sequence(table, 0, SequenceParams(frames=1, drop_fraction=(0.0, 0.0), max_spurious=0))
+    row = int(np.flatnonzero(origins[0] == 3)[0])
+    assert np.isnan(volumes[0].colours_as_read()["R"][row]), volumes[0].colours["R"][row]

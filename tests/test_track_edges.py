@@ -612,3 +612,30 @@ def test_a_table_sequences_measured_columns_reach_the_output(tmp_path, gentle):
     tracks = pd.read_csv(out)
     assert "GFP" in tracks.columns, tracks.columns.tolist()
     assert np.allclose(tracks["GFP"].to_numpy(), df["GFP"].to_numpy())
+
+
+def test_track_output_name_is_not_an_earlier_runs_name(tmp_path):
+    """An fdlc track output read again as the sequence (another method, another reference)
+    has a ``name`` column; the first volume, the reference, has no ``label``, so the new run
+    names nothing. Since session 35 the input's other columns are passed on, and the earlier
+    run's ``name`` column goes out beside the new ``track_id`` (docs/tracking.md: ``name`` is
+    the reference neuron's name, only when a reference is labelled). Expected: no ``name``
+    column (or one that agrees with the new tracks); got the stale names of the input."""
+    from napari_fdlc.cli import main
+    from napari_fdlc.table import write_table
+
+    rng = np.random.default_rng(1)
+    base = rng.uniform(0, 40, (15, 3))
+    rows = []
+    for t in range(3):
+        xyz = base + rng.normal(0, 0.2, base.shape)
+        for k, p in enumerate(xyz):
+            rows.append({"t": t, "x_um": p[0], "y_um": p[1], "z_um": p[2], "track_id": k,
+                         "name": f"STALE{(k + 5) % 15}"})
+    src = tmp_path / "earlier_output.csv"
+    write_table(pd.DataFrame(rows), src)
+    out = tmp_path / "again.csv"
+    assert main(["track", str(src), "--method", "geometry", "--quiet", "--out", str(out)]) == 0
+    df = pd.read_csv(out, keep_default_na=False)
+    assert "name" not in df.columns or not df["name"].astype(str).str.startswith("STALE").any(), \
+        df[["t", "track_id", "name"]].head()

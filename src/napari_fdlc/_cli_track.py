@@ -155,7 +155,9 @@ def run(args: argparse.Namespace) -> int:
     from .track import join_by_time
 
     measured = join_by_time(seq.volumes, seq.times).drop(columns=["t", "x_um", "y_um", "z_um", "label"])
-    frame = pd.concat([frame, measured.drop(columns=[c for c in measured if c in frame])], axis=1)
+    # an earlier run's own columns (its name, track, file) are not this run's
+    earlier = {"neuron_index", "track_id", "track_conf", "name", "file", *frame.columns}
+    frame = pd.concat([frame, measured.drop(columns=[c for c in measured if c in earlier])], axis=1)
     write_table(frame, out)
     return 0
 

@@ -949,8 +949,8 @@ def colour_note(test: NeuronTable, references: list[NeuronTable], use_colour: bo
         return None
     flat = [c for c in colour_model.IDENTITY_CHANNELS if c in test.colours and c not in colour_model.read_channels(test)]
     if flat:
-        return (f"{test.source}: {', '.join(flat)} hold one value for every neuron (no colour reading): "
-                "identifying by position only")
+        return (f"{test.source}: {', '.join(flat)} {'has' if len(flat) == 1 else 'have'} no reading that differs "
+                "between neurons (empty, or one value for every neuron): identifying by position only")
     if any(c in test.colours for c in colour_model.IDENTITY_CHANNELS):
         return f"{test.source}: no colour channel in common with the template(s): identifying by position only"
     return f"{test.source}: no colour column (R, G, B): identifying by position only (--no-color says it is meant)"

@@ -311,6 +311,7 @@ class ReviewSession:
         image: str | None = None,
         path: str | os.PathLike | None = None,
         names: Iterable[str] | None = None,
+        by_hand: bool | np.ndarray = False,
     ) -> None:
         n = len(table)
         self.threshold = _check_threshold(threshold)
@@ -336,7 +337,8 @@ class ReviewSession:
             status=["auto"] * n,
             order=list(range(n)),
             labelled=False,
-            by_hand=np.zeros(n, dtype=bool),
+            # the user's own neurons (a table of theirs: True), as against the detector's
+            by_hand=np.broadcast_to(np.asarray(by_hand, dtype=bool), (n,)).copy(),
         )
         if labelling is not None:
             self._apply_labelling(self._s, labelling)
@@ -347,7 +349,8 @@ class ReviewSession:
 
     @property
     def by_hand(self) -> np.ndarray:
-        """Mask of the neurons added or moved by hand (the layer's edits; a copy)."""
+        """Mask of the user's own neurons: added or moved by hand (the layer's edits), or from a
+        table of theirs; a copy."""
         return self._s.by_hand.copy()
 
     @property
@@ -962,7 +965,7 @@ class ReviewSession:
             else:
                 s = self._s
                 t = s.table
-                user = NeuronTable(t.xyz, t.colours, labels=s.user_id, label_conf=np.nan_to_num(s.user_conf), source=t.source)
+                user = NeuronTable(t.xyz, t.colours_as_read(), labels=s.user_id, label_conf=np.nan_to_num(s.user_conf), source=t.source)
                 # NeuroPAL_ID shows the Auto ID of a neuron without a User ID: only where the widget
                 # shows it (not below the threshold, not a name a decision took elsewhere).
                 shown = self.auto_shown()

@@ -302,8 +302,9 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
     for _ in range(skiprows):
         next(records, None)
     header = next(records, None)
-    while header is not None and not any(cell.strip() for cell in header):  # blank lines above the header (pandas skips them too)
+    while header is not None and not any(cell.strip() for cell in header):  # blank lines (and Excel's ',,,') above the header
         header = next(records, None)
+        skiprows += 1  # pandas would take ',,,' for the header
     if header is not None and len(header) == 1:
         for separator, called in ((";", "semicolons"), ("\t", "tabs")):
             if separator in header[0]:
@@ -360,7 +361,7 @@ def _record_lines(text: str, skiprows: int) -> list[int]:
     starts, filled, previous = [], [], 0
     for row in reader:
         start, previous = previous + 1, reader.line_num
-        if start > skiprows and row:
+        if start > skiprows and row and not (len(row) == 1 and not row[0].strip()):  # pandas skips a line of spaces
             starts.append(start)
             filled.append(any(cell.strip() for cell in row))
     while filled and not filled[-1]:

@@ -796,10 +796,12 @@ def simulate_sequence(
         pts, origin = pts[order] @ rotation + centre, origin[order]
         real = origin >= 0
         colours = {}
-        for ch, values in table.colours.items():
-            v = np.empty(len(pts))
+        for ch, values in table.colours_as_read().items():  # a neuron without a reading has none here
+            read = values[np.isfinite(values)]
+            v = np.full(len(pts), np.nan)
             v[real] = values[origin[real]] * rng.normal(1.0, 0.05, real.sum())
-            v[~real] = rng.choice(values, (~real).sum()) if (~real).any() else v[~real]
+            if (~real).any() and len(read):  # a spurious detection: some neuron's reading
+                v[~real] = rng.choice(read, (~real).sum())
             colours[ch] = v
         volumes.append(NeuronTable(pts, colours, source=f"synthetic sequence t={t}"))
         origins.append(origin)

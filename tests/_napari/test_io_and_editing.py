@@ -1039,3 +1039,15 @@ def test_a_recording_whose_channels_are_not_named_is_offered_by_the_track_widget
     widget.identifier = identifier
     offered = [widget.source_combo.itemText(i) for i in range(widget.source_combo.count())]
     assert offered != [SEQUENCE_FILE], f"the recording open in the viewer is not offered: {offered}"
+
+
+def test_review_layer_features_keep_a_colour_gap(gap_table):
+    """The neuron-ID layer's features are what File → Save Selected Layers writes (and what
+    table_from_layer reads). A neuron without an R reading should hold NaN there (the table
+    layer does, through to_dataframe); review_features copies ``session.table.colours``, the
+    median filled in, so a saved result layer writes the median as a reading."""
+    from napari_fdlc._napari._layers import review_features
+    from napari_fdlc.review import ReviewSession
+
+    feats = review_features(ReviewSession(gap_table))
+    assert np.isnan(feats["R"].iloc[3]), feats["R"].iloc[3]

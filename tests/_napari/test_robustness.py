@@ -1112,4 +1112,4 @@ def test_auto_label_again_with_another_diameter_sets_nothing_aside(labelled_view
     before = len(notification_manager.records)
     assert widget.auto_label() is not None, widget.last_error
     said = [str(r.message) for r in notification_manager.records[before:]]
-    assert any("1 neuron(s) you added or moved" in m for m in said), said
+    assert any("1 neuron(s) you added, moved or brought" in m for m in said), said

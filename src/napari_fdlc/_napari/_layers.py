@@ -360,9 +360,10 @@ def review_features(session) -> pd.DataFrame:
     df["user_conf"] = session.user_conf
     df["status"] = np.asarray(session.status, dtype=object)
     df["shown"] = np.asarray([bool(x) for x in session.final_names()], dtype=bool)
+    colours = session.table.colours_as_read()  # a neuron without a reading is saved without one
     for c in COLOUR_CHANNELS:
-        if c in session.table.colours:
-            df[c] = session.table.colours[c]
+        if c in colours:
+            df[c] = colours[c]
     return df
 
 

@@ -894,7 +894,7 @@ class AutoLabelWidget(QWidget):
                     lost = max(lost, len(self.session.decisions()) - len(during))
                     carried = {**carried, **during}
                 self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name,
-                                  lost=lost, unreadable=unreadable, missing=missing)
+                                  lost=lost, unreadable=unreadable, missing=missing, by_hand=given_table is not None)
             self._status(self._done_message(len(table), labelling))
             if scale_warning:  # e.g. a voxel size or points layer not in µm: names come out meaningless, say why
                 self._notify_warning(scale_warning)
@@ -1040,11 +1040,12 @@ class AutoLabelWidget(QWidget):
         self.progress_bar.setFormat(f"{message} (%p%)")
 
     def _new_session(self, table, labelling, carried, image_key, voxel, stack, settings, source_name, base_name=None,
-                     lost: int = 0, unreadable: str | None = None, missing: int = 0) -> None:
+                     lost: int = 0, unreadable: str | None = None, missing: int = 0, by_hand: bool = False) -> None:
         """Show a new session; the session file it replaces is first set aside when it holds
         decisions the new one lacks (``lost`` of them could not be carried over), neurons it
         lacks (``missing``: added or moved by hand, none detected there now) or could not be read
-        (``unreadable``): annotations are never lost."""
+        (``unreadable``): annotations are never lost. ``by_hand``: the neurons are the user's own
+        (a points layer of theirs), not a detection."""
         key = image_key or f"layer:{source_name}"
         path = session_file_for(key)
         if lost or unreadable or missing:
@@ -1066,10 +1067,10 @@ class AutoLabelWidget(QWidget):
                 self._notify_warning(f"{lost} of your decisions had no neuron within 1.5 µm in the new detection "
                                      f"and were not carried over{where}")
             if missing:
-                self._notify_warning(f"{missing} neuron(s) you added or moved in the earlier session have no "
+                self._notify_warning(f"{missing} neuron(s) you added, moved or brought in the earlier session have no "
                                      f"neuron within 1.5 µm in the new detection and are not in it{where}")
         session = ReviewSession(
-            table, labelling, threshold=self.threshold, voxel_size_zyx=voxel, image=key, path=path
+            table, labelling, threshold=self.threshold, voxel_size_zyx=voxel, image=key, path=path, by_hand=by_hand
         )
         session.settings.update(settings)
         if stack is not None:
