@@ -565,3 +565,28 @@ def test_adapt_colours_with_three_coloured_tests_is_not_refused_as_fewer_than_th
     ignored = [line for line in err.splitlines() if "--adapt-colours" in line and "ignored" in line]
     assert not ignored or "cop" in ignored[0], (
         "3 tests with R, G, B were given, yet: " + ignored[0])
+
+
+def test_handedness_refuses_when_the_names_in_common_lie_in_a_plane(tmp_path, capsys):
+    """docs/cli.md: `fdlc handedness` "refuses a worm whose named neurons lie in one plane (no
+    handedness to tell)". Its answer rests on the names in common with the atlas only; when
+    those lie in a plane a worm and its mirror image fit alike. evaluate.handedness checks the
+    flatness of all the worm's named neurons instead (refuse_flat on worm.named), so a worm
+    with further names the atlas lacks (its own or body neurons' names) whose 8 atlas names lie
+    in one plane is answered 'same', and so is its mirror image (z flipped): one of the two is
+    wrong, with exit 0 and a confident '--chirality same' advice. Expected: exit 2, one line
+    that says the names in common lie in a plane."""
+    w = generate_worm(seed=1)
+    xyz = w.xyz.copy()
+    labels = np.array([f"X{i}" for i in range(len(w))], dtype=object)  # names the atlas does not know
+    common = np.arange(0, 80, 10)
+    labels[common] = w.labels[common]
+    xyz[common, 2] = 10.0  # the 8 neurons the atlas knows lie in one plane
+    answers = {}
+    for how, mirror in (("as_is", [1, 1, 1]), ("mirrored", [1, 1, -1])):
+        path = tmp_path / f"{how}.csv"
+        write_table(NeuronTable(xyz * mirror, w.colours, labels), path)
+        rc = main(["handedness", str(path)])
+        answers[how] = (rc, capsys.readouterr().out.strip().splitlines()[:1])
+    assert all(rc == 2 for rc, _ in answers.values()), (
+        f"a worm and its mirror image, both answered: {answers}")

@@ -9,6 +9,9 @@ import pytest
 
 from napari_fdlc.reference import generate_worm, load_panel
 from napari_fdlc.table import NeuronTable
+import pandas as pd
+from napari_fdlc.cli import main
+from napari_fdlc.table import write_table
 
 # Generated worms, z mirrored, whose two pieces of evidence (model and registration) both lean
 # mirrored with the shipped model: 7 of them are the fewest the sign test decides on.
@@ -137,3 +140,46 @@ def test_label_many_gives_a_test_the_same_answer_beside_a_test_without_blue(iden
     beside = ident.label_many([full, no_blue], [template], atlas=panel.atlas)[0]
     changed = sum(a != b for a, b in zip(alone.auto_id, beside.auto_id))
     assert changed == 0 and np.allclose(alone.probs, beside.probs, atol=1e-9), f"{changed} of {len(full)} names changed"
+
+
+def test_adapting_the_colours_does_not_undo_the_shared_handedness(tmp_path, capsys):
+    """docs/cli.md: several tests on `auto` "are named in one handedness when they clearly
+    agree", and adapting the colours (the default from 3 coloured tests) names them again "with
+    a panel drawn from that atlas (positions unchanged)". Ten z-mirrored recordings: named
+    once, they vote 7 of 7 mirrored and all are named 'mirrored' (with --no-adapt-colours:
+    64-80 % top-1 and the warning line). With the default (colours adapted) the second naming
+    runs on `auto` again from scratch (identify.Identifier.label_panel_many calls itself with
+    the adapted panel and re-runs the sign test), votes only 6 of 6, decides nothing, and every
+    recording is named in the atlas's handedness: 5-12 % top-1, left and right swapped, and no
+    line on stderr at all. The colours were even measured on the mirrored names."""
+    paths = []
+    for seed in range(10):
+        w = generate_worm(seed)
+        path = tmp_path / f"m{seed}.csv"
+        write_table(NeuronTable(w.xyz * [1, 1, -1], w.colours, w.labels), path)
+        paths.append(path)
+    assert main(["label", *map(str, paths), "--out", str(tmp_path / "out") + "/"]) == 0
+    err = capsys.readouterr().err
+    top1 = []
+    for path in paths:
+        got = pd.read_csv(tmp_path / "out" / path.name, keep_default_na=False)["auto_id"].to_numpy()
+        truth = pd.read_csv(path, keep_default_na=False)["label"].to_numpy()
+        top1.append(float(np.mean(got == truth)))
+    assert "all are named as 'mirrored'" in err and np.mean(top1) > 0.5, (
+        f"mirrored recordings named in the atlas's handedness after adapting the colours: top-1 "
+        f"{np.round(top1, 2).tolist()}, stderr {err!r}")
+
+
+def test_a_copy_with_its_rows_in_another_order_is_not_a_recording_of_its_own():
+    """docs/cli.md: "a copy of another test never votes, nor are the adapted colours measured
+    on it", and three recordings are needed to adapt the colours. A copy of a test whose rows
+    are in another order (the same recording re-saved sorted, e.g. in a spreadsheet) is counted
+    as a recording of its own: identify._counted_recordings tells copies by the bytes of the
+    positions and colours in row order, so [A, B, A with its rows reversed] adapts the colours
+    (can_adapt_colours is True, A measured twice) and A would vote twice on the handedness.
+    Expected: only 2 distinct recordings, so no adaptation."""
+    from napari_fdlc.identify import can_adapt_colours
+
+    a, b = generate_worm(seed=1), generate_worm(seed=2)
+    shuffled = NeuronTable(a.xyz[::-1], {c: v[::-1] for c, v in a.colours.items()}, a.labels[::-1])
+    assert not can_adapt_colours([a, b, shuffled]), "a reordered copy of A counted as a third recording"

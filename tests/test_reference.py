@@ -268,3 +268,29 @@ def test_the_corpus_atlas_without_ey_keeps_the_corpus_handedness():
     for test in ey[:2]:
         scores.add(default_identifier().label_panel(test, make_panel(atlas), use_colour=True), test, set(atlas.names))
     assert scores.summary()["top1"] > 0.6
+
+
+def test_adapted_colours_are_not_measured_on_cells_without_a_reading():
+    """docs/cli.md: the panel's colour per name is "measured on them" (the tests' normal
+    scores); colour.py: "a cell without a reading says nothing". A cell left empty (NaN,
+    NeuroPAL_ID's no reading) is filled with the volume's median by NeuronTable, and
+    reference.Atlas.with_colours_of takes that filler's normal score (0) as a measurement: a
+    name whose R was not read in any of the three tests gets R = 0 with spread 0, replacing the
+    atlas's 0.98 +- 0.50 for AVAL, a colour invented with full confidence (the table's
+    colour_gaps are ignored). Expected: only cells with a reading are measured (the atlas's R
+    kept for a name with no reading of it)."""
+    atlas = load_atlas()
+    k = list(atlas.names).index("AVAL")
+    tests, names = [], []
+    for seed in range(3):
+        w = generate_worm(seed)
+        assert "AVAL" in list(w.labels)
+        red = w.colours["R"].copy()
+        red[list(w.labels).index("AVAL")] = np.nan  # AVAL's R not read in this recording
+        red[::4] = np.nan
+        tests.append(NeuronTable(w.xyz, {"R": red, "G": w.colours["G"], "B": w.colours["B"]}, w.labels))
+        names.append(np.asarray(w.labels, dtype=object))
+    adapted = atlas.with_colours_of(tests, names, 3)
+    assert adapted.colour[k, 0] == pytest.approx(atlas.colour[k, 0]) and adapted.colour_sd[k, 0] > 0, (
+        f"AVAL's R, read in none of the tests, measured as {adapted.colour[k, 0]:.3f} +- "
+        f"{adapted.colour_sd[k, 0]:.3f} (atlas: {atlas.colour[k, 0]:.3f} +- {atlas.colour_sd[k, 0]:.3f})")

@@ -905,9 +905,17 @@ class Identifier:
                  for r, c in zip(results, counted)]
         atlas = panel.atlas.with_colours_of(tests, names, ADAPT_MIN_WORMS)
         adapted = int((atlas.colour != panel.atlas.colour).any(axis=1).sum())
-        results = self.label_panel_many(tests, make_panel(atlas), use_colour, share_handedness=share_handedness)
+        # The handedness the tests decided together stands: the colours were measured on names
+        # given in it, and a second vote can fall short of significance (7 of 7 decides, 6 of 6
+        # does not) and leave every worm to its own, wrong, choice
+        batch = results[0].info.get("batch_handedness") if results else None
+        decided = batch["decided"] if batch else None
+        again = self.with_chirality(decided) if decided else self
+        results = again.label_panel_many(tests, make_panel(atlas), use_colour, share_handedness=share_handedness)
         for r in results:
             r.info["adapted_colours"] = adapted
+            if decided:
+                r.info["batch_handedness"] = batch
         return results
 
     def _shared_handedness(self, tests: list[NeuronTable], panel: Panel, use_colour: bool,
@@ -981,7 +989,9 @@ def _counted_recordings(tests: list[NeuronTable]) -> list[bool]:
     twice was two votes, and three copies of one worm measured its colours on itself)."""
     seen, out = set(), []
     for t in tests:
-        key = hash((t.xyz.tobytes(), tuple((c, v.tobytes()) for c, v in sorted(t.colours.items()))))
+        rows = np.column_stack([t.xyz, *(v for _, v in sorted(t.colours.items()))])
+        rows = rows[np.lexsort(rows.T[::-1])]  # a copy with its rows in another order is a copy
+        key = hash((rows.tobytes(), tuple(sorted(t.colours))))
         out.append(len(t) >= FEW_NEURONS and key not in seen)
         seen.add(key)
     return out

@@ -113,14 +113,18 @@ class Atlas:
         for table, given in zip(tables, names):
             if not has_colour(table):
                 continue
-            scores = normal_scores(table, IDENTITY_CHANNELS)
+            scores = normal_scores(table, IDENTITY_CHANNELS).copy()
+            for j, c in enumerate(IDENTITY_CHANNELS):  # a cell without a reading measures nothing
+                scores[table.colour_gaps.get(c, np.zeros(len(table), bool)), j] = np.nan
             for row, name in enumerate(given):
                 if name in index:
                     seen.setdefault(index[name], []).append(scores[row])
         colour, colour_sd = self.colour.copy(), self.colour_sd.copy()
-        for k, values in seen.items():
-            if len(values) >= min_worms:
-                colour[k], colour_sd[k] = np.mean(values, axis=0), np.std(values, axis=0)
+        for k, values in seen.items():  # per channel: a name read in too few worms keeps the atlas's
+            values = np.asarray(values)
+            enough = np.isfinite(values).sum(axis=0) >= min_worms
+            colour[k, enough] = np.nanmean(values[:, enough], axis=0)
+            colour_sd[k, enough] = np.nanstd(values[:, enough], axis=0)
         return replace(self, colour=colour, colour_sd=colour_sd)
 
     def to_frame(self) -> pd.DataFrame:
