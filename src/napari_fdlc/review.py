@@ -622,12 +622,14 @@ class ReviewSession:
         """Row -> name of every user decision: the constraints for re-labelling."""
         return {i: name for i, name in enumerate(self._s.user_id) if name}
 
-    def _apply_labelling(self, s: _State, labelling: Labelling) -> None:
+    def _apply_labelling(self, s: _State, labelling: Labelling, fixed_rows=()) -> None:
         n = len(s.table)
         if len(labelling.auto_id) != n:
             raise FdlcError(f"the labelling has {len(labelling.auto_id)} neurons but the table has {n}")
         cand, cand_p = labelling.candidates(K)
-        keep = {i for i, st in enumerate(s.status) if st != "auto"} if s.labelled else set()
+        # decided now, or fixed when the labelling was made (a decision cleared while it ran: the
+        # labelling holds the fixed name at 1.0 there, no answer of the machine's)
+        keep = ({i for i, st in enumerate(s.status) if st != "auto"} | set(fixed_rows)) if s.labelled else set()
         for j in range(n):
             # A decided neuron keeps the machine's earlier answer and candidates (the labelling
             # reports the user's fixed name there, at 1.0), so 'accepted' vs 'corrected' stays
@@ -644,9 +646,12 @@ class ReviewSession:
         s.order = [int(i) for i in np.argsort(conf, kind="stable")]
         self.vocabulary = sorted(set(self.vocabulary) | set(labelling.names))
 
-    def set_labelling(self, labelling: Labelling, description: str = "auto-label") -> None:
-        """Replace the automatic columns (undoable). User decisions are kept as they are."""
-        self._commit(description, lambda s: self._apply_labelling(s, labelling), kind="labelling")
+    def set_labelling(self, labelling: Labelling, description: str = "auto-label", fixed_rows=()) -> None:
+        """Replace the automatic columns (undoable). User decisions are kept as they are;
+        ``fixed_rows``: the rows whose names were fixed when ``labelling`` was made, which keep
+        the machine's earlier answer even if their decision has been cleared since."""
+        rows = [int(i) for i in fixed_rows]
+        self._commit(description, lambda s: self._apply_labelling(s, labelling, rows), kind="labelling")
 
     # ----- edits --------------------------------------------------------------------------------
     def _row(self, i) -> int:

@@ -1113,3 +1113,117 @@ def test_auto_label_again_with_another_diameter_sets_nothing_aside(labelled_view
     assert widget.auto_label() is not None, widget.last_error
     said = [str(r.message) for r in notification_manager.records[before:]]
     assert any("1 neuron(s) you added, moved or brought" in m for m in said), said
+
+
+def test_clearing_a_decision_while_re_label_runs_offers_the_machines_candidates_again(labelled_viewer):
+    """Correct a neuron (candidate 2), click Re-label, and Clear that neuron while Re-label runs
+    in the background (napari stays usable). Expected: the cleared neuron's automatic answer and
+    Candidates are the machine's, as when Clear comes after Re-label ("the automatic name applies
+    again"). Instead the cleared name comes back as its automatic name, with one candidate, the
+    cleared name itself at 1.00 (the constraint Re-label was given), and the machine's own
+    answer and top 3 are gone."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    session = widget.session
+    f = layer.features
+    auto_ids = set(f["auto_id"])
+    k = next(i for i in range(len(session))
+             if f["auto_id"][i] and f["cand_2"][i] and f["cand_2"][i] not in auto_ids)
+    before = session.candidates(k)
+    widget.pick_candidate(k, 2)
+    name = session.user_id[k]
+    widget.relabel(wait=False)
+    widget.clear(k)  # on the GUI thread, before the job's result is delivered
+    widget.wait()
+    assert widget.last_error is None and session.status[k] == "auto"
+    got = session.candidates(k)
+    assert [c for c, _ in got] == [c for c, _ in before], (
+        f"neuron {k} cleared of {name} during Re-label offers {got}, not the machine's {before}")
+
+
+def test_the_candidates_dropdown_says_which_candidate_another_neuron_has_from_you(labelled_viewer):
+    """Give neuron a the name that is neuron b's first candidate, then go to b. Expected: its
+    Candidates dropdown says that this candidate is already yours elsewhere (disabled or marked
+    with the neuron that has it), as giving it is refused ("clear it there first"). Instead the
+    dropdown offers it like any other, with its probability; choosing it only gets an error."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    session = widget.session
+    f = layer.features
+    b = next(i for i in range(len(session)) if f["cand_1"][i] and f["cand_2"][i])
+    name = f["cand_1"][b]
+    a = next(i for i in range(len(session))
+             if i != b and session.auto_id[i] != name and name not in [c for c, _ in session.candidates(i)])
+    widget.assign(a, name)
+    widget.select_neuron(b)
+    combo = widget.candidate_combo
+    text = combo.itemText(0)
+    assert text.startswith(f"1. {name}")
+    enabled = combo.model().item(0).isEnabled()
+    assert not enabled or f"neuron {a}" in text or "taken" in text.lower(), (
+        f"the dropdown offers {text!r} although neuron {a} has {name} from the user")
+
+
+def test_a_confidence_shown_at_the_threshold_is_not_hidden_as_below_it(labelled_viewer):
+    """The review box and the list show each automatic confidence to two decimals, and the
+    threshold slider reads two decimals. Expected: a name whose confidence reads as the
+    threshold (0.50 at 0.50) is shown, or its confidence is not written as reaching the
+    threshold. Instead a confidence of e.g. 0.4956 reads "0.50" in the review box and the list
+    while the threshold reads 0.50, and its name is hidden (grey ring, "(no name shown)")."""
+    viewer, widget = labelled_viewer
+    widget.auto_label()
+    session = widget.session
+    conf = session.auto_conf
+    # a named neuron whose confidence rounds up to two decimals, its name otherwise shown
+    widget.set_threshold(0.0)
+    shown = session.auto_shown()
+    i = next(j for j in np.argsort(-conf) if shown[j] and session.auto_id[j]
+             and 0.05 < conf[j] < 0.95 and round(conf[j], 2) > conf[j] + 1e-9)
+    i = int(i)
+    widget.set_threshold(round(conf[i], 2))
+    widget.select_neuron(i)
+    assert widget.threshold_label.text() == f"{conf[i]:.2f}"
+    row = session.review_order().index(i)
+    listed = float(widget.neuron_table.item(row, 2).text())
+    boxed = widget.current_label.text()
+    hidden = not session.auto_shown()[i]
+    assert not (hidden and listed >= widget.threshold), (
+        f"neuron {i}: confidence {conf[i]:.4f} listed as {listed:.2f} and shown in the box as {boxed!r} "
+        f"at threshold {widget.threshold:.2f}, yet its name is hidden as below the threshold")
+
+
+def test_the_candidates_dropdown_with_several_neurons_selected_names_none_of_them(labelled_viewer):
+    """Go to a neuron, then box-select several others and choose a name in the Candidates
+    dropdown. Expected: as with the keys, the Name field and the Accept/Unsure/Clear buttons, a
+    message asks to click the one to name, and no neuron is named. Instead the dropdown names the
+    neuron shown last, which is none of those selected."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    session = widget.session
+    shown_last = next(i for i in range(3, len(session)) if session.candidates(i))
+    widget.select_neuron(shown_last)
+    layer.selected_data = {0, 1, 2}
+    widget.candidate_combo.activated.emit(0)
+    assert set(session.status) == {"auto"}, (
+        f"neuron {session.status.index(next(s for s in session.status if s != 'auto'))} was named "
+        "with neurons 0, 1 and 2 selected")
+
+
+def test_a_decision_cleared_while_auto_label_runs_again_does_not_come_back(labelled_viewer):
+    """Accept a neuron, click Auto-label again (a new detection, in the background), and Clear
+    that neuron while it runs. Expected: the new session has no decision there (decisions made
+    while the job ran are kept, so one undone while it ran stays undone). Instead the cleared
+    decision comes back from the snapshot taken when the job started: shown, autosaved, and
+    not undoable (the new session's history is empty)."""
+    viewer, widget = labelled_viewer
+    widget.auto_label()
+    session = widget.session
+    k = next(i for i in range(len(session)) if session.auto_id[i])
+    widget.accept(k)
+    widget.auto_label(wait=False)
+    widget.clear(k)  # on the GUI thread, before the job's result is delivered
+    assert session.decisions() == {}
+    widget.wait()
+    assert widget.last_error is None and widget.session is not session
+    assert widget.session.decisions() == {}, (
+        f"the decision cleared while Auto-label ran is back: {widget.session.decisions()}")

@@ -133,6 +133,12 @@ class _Signals(QObject):
     idle = Signal()  # the job has ended (emitted on the GUI thread)
 
 
+def _shown_conf(conf: float) -> str:
+    """A confidence to two decimals, rounded down: one shown as the threshold is not below it
+    (0.8584 read "0.86" beside a threshold of 0.86, and its name was hidden as below it)."""
+    return f"{np.floor(conf * 100 + 1e-9) / 100:.2f}"
+
+
 class AutoLabelWidget(QWidget):
     """Auto-label dock widget; see the module docstring for the scripting interface."""
 
@@ -886,13 +892,15 @@ class AutoLabelWidget(QWidget):
                     # the layer, or points of it, went while the job ran
                     raise FdlcError("the neurons changed while auto-labelling; run Auto-label again")
                 self.session.settings.update(settings)
-                self.session.set_labelling(labelling, "auto-label")
+                self.session.set_labelling(labelling, "auto-label", fixed_rows=own_decisions or ())
             else:
                 if self.session is not None and self.session.image == image_key:
                     # decisions made while the job ran are kept too
                     during = carry_decisions(self.session, table.xyz)
-                    lost = max(lost, len(self.session.decisions()) - len(during))
-                    carried = {**carried, **during}
+                    if self.session is previous:  # the snapshot's session: its decisions as they are now
+                        lost, carried = len(self.session.decisions()) - len(during), {**decisions, **during}
+                    else:
+                        lost, carried = max(lost, len(self.session.decisions()) - len(during)), {**carried, **during}
                 self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name,
                                   lost=lost, unreadable=unreadable, missing=missing, by_hand=given_table is not None)
             self._status(self._done_message(len(table), labelling))
@@ -930,7 +938,7 @@ class AutoLabelWidget(QWidget):
                 self._notify_warning("the neurons changed while re-labelling; run Re-label again")
                 return
             session.settings.update({"template": template_text, "colour": use_colour})
-            session.set_labelling(labelling, "re-label")
+            session.set_labelling(labelling, "re-label", fixed_rows=fixed)
             self._status(f"re-labelled ({len(fixed)} of your names fixed)")
             hint = self._handedness_hint(labelling, fixed, template_text, chirality)
             if hint:
@@ -1424,7 +1432,7 @@ class AutoLabelWidget(QWidget):
     def _on_candidate_activated(self, index: int) -> None:
         if self._guard or self.session is None or self.session.current is None:
             return
-        self._gui(self.pick_candidate, self.session.current, index + 1)
+        self._on_current(lambda i: self.pick_candidate(i, index + 1))  # several selected: refused, as the keys are
 
     def _on_name_entered(self) -> None:
         text = self.name_edit.text().strip()
@@ -1566,7 +1574,7 @@ class AutoLabelWidget(QWidget):
             for r, i in enumerate(order):
                 name = names[i] or (f"({s.auto_id[i]})" if s.auto_id[i] else "—")
                 key = status[i] if status[i] != "auto" else ("auto" if shown[i] else "hidden")
-                for c, text in enumerate((str(i), name, f"{conf[i]:.2f}", status[i])):
+                for c, text in enumerate((str(i), name, _shown_conf(conf[i]), status[i])):
                     item = table.item(r, c)
                     if item is None:
                         item = QTableWidgetItem()
@@ -1589,10 +1597,13 @@ class AutoLabelWidget(QWidget):
             name = s.display_names()[i] or "(no name shown)"
             auto = s.auto_id[i] or "no match"
             self.current_label.setText(
-                f"<b>Neuron {i}</b>: {name} — {s.status[i]}; automatic: {auto} ({s.auto_conf[i]:.2f})"
+                f"<b>Neuron {i}</b>: {name} — {s.status[i]}; automatic: {auto} ({_shown_conf(s.auto_conf[i])})"
             )
+            holders = s.user_names()
             for k, (cand, p) in enumerate(s.candidates(i), start=1):
-                self.candidate_combo.addItem(f"{k}. {cand}  ({p:.2f})")
+                # a name another neuron has from the user would only be refused: said beside it
+                held = f" — neuron {holders[cand]} has it" if holders.get(cand, i) != i else ""
+                self.candidate_combo.addItem(f"{k}. {cand}  ({_shown_conf(p)}){held}")
             if self.layer is not None and set(self.layer.selected_data) != {i}:
                 self.layer.selected_data = {i}
             order = s.review_order()
