@@ -352,3 +352,18 @@ def test_a_second_report_in_one_folder_does_not_replace_the_first_reports_plot(t
     before = plot.read_bytes()
     assert run("evaluate", "--corpus", corpus, "--labs", "EY", *FAST, "--weights", untrained_weights, "--out", second) == 0
     assert plot.read_bytes() == before, "the first report's plot was replaced by the second run's"
+
+
+def test_a_checkpoint_inside_the_corpus_is_refused_before_any_folder_is_made(tmp_path, capsys):
+    """fdlc atlas and fdlc evaluate refuse an output inside the corpus (read, never written);
+    fdlc train wrote its checkpoint there, and fdlc atlas made the output's folder inside the
+    corpus before refusing."""
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    (corpus / "worms.csv").write_text("dataset,dandiset,worm,n_neurons,n_labeled\n")
+    for args in (["train", "--corpus", str(corpus), "--steps", "1", "--out", str(corpus / "runs" / "model")],
+                 ["atlas", "--corpus", str(corpus), "--out", str(corpus / "made" / "atlas.csv")],
+                 ["evaluate", "--corpus", str(corpus), "--out", str(corpus / "made" / "report.md")]):
+        assert main(args) == 2
+        assert "inside the corpus folder" in capsys.readouterr().err
+    assert sorted(p.name for p in corpus.iterdir()) == ["worms.csv"]

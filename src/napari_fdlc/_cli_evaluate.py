@@ -47,8 +47,8 @@ def run(args) -> int:
 
     # The model (the shipped one by default) and the corpus are read, never written: a report
     # over the weights' JSON or a worm's table would destroy them.
-    out = check_output(args.out, inputs=model_files(args.weights or shipped_weights()), create_folder=True)
-    refuse_out_in_corpus(out, args.corpus, "report")
+    refuse_out_in_corpus(Path(args.out), args.corpus, "report")  # before its folder is made
+    check_output(args.out, inputs=model_files(args.weights or shipped_weights()), create_folder=True)
     report = evaluate_corpus(
         corpus=args.corpus, labs=args.labs, weights=args.weights, pairs_per_lab=args.pairs_per_lab,
         panel_worms_per_lab=args.panel_worms_per_lab, synthetic_pairs=args.synthetic_pairs,

@@ -182,6 +182,9 @@ def _run_train(args) -> int:
     # Refused before training, not at the first save: a folder that cannot be made, or the very
     # weights a new run starts from.
     starts_from = [model_files(cfg.init_from)[0]] if cfg.init_from and not cfg.resume else []
+    from .corpus import refuse_out_in_corpus
+
+    refuse_out_in_corpus(model_files(cfg.out)[0], cfg.corpus, "checkpoint")  # before its folder is made
     check_output(model_files(cfg.out)[0], inputs=starts_from, create_folder=True)
     if not args.calibrate_only:  # the record too (a folder of its name failed at the first save); a new
         # run's record would replace its recipe
@@ -246,7 +249,8 @@ def _run_atlas(args) -> int:
 
     if not 0 < args.min_frequency <= 1:
         raise FdlcError(f"--min-frequency must be a fraction of worms in (0, 1] (got {args.min_frequency})")
-    refuse_out_in_corpus(check_output(args.out, create_folder=True), args.corpus, "atlas")
+    refuse_out_in_corpus(Path(args.out), args.corpus, "atlas")  # before its folder is made
+    check_output(args.out, create_folder=True)
     atlas = build_atlas(load_corpus(args.corpus, args.labs), min_frequency=args.min_frequency)
     atlas.save(args.out)
     print(f"{len(atlas.names)} names from {atlas.worms} worms of {', '.join(atlas.labs)} -> {args.out}")
