@@ -250,7 +250,7 @@ def parse_name(raw) -> tuple[str, float]:
     return (s, 1.0) if s else ("", 0.0)
 
 
-def _neuropal_id_header(lines: list[str]) -> int | None:
+def neuropal_id_header(lines: list[str]) -> int | None:
     """The line of a NeuroPAL_ID export's header (quoted or not), None for another table."""
     for i, line in enumerate(lines[:12]):
         cells = [c.strip() for c in next(_csv_records(line), [])]
@@ -279,7 +279,7 @@ def read_table(path: str | os.PathLike, names: bool = True, unique_names: bool =
     if not text.strip():
         raise TableError(f"{name}: the file is empty")
     lines = text.splitlines()
-    header_line = _neuropal_id_header(lines)
+    header_line = neuropal_id_header(lines)
     if header_line is not None:
         df = _read_csv(text, name, skiprows=header_line)
         return _from_neuropal_id(df, name, first_line=header_line + 2, names=names, unique_names=unique_names)

@@ -130,7 +130,7 @@ def test_whole_flow(labelled_viewer, make_napari_viewer):
     assert widget.current == e
     items = [widget.candidate_combo.itemText(k) for k in range(widget.candidate_combo.count())]
     assert len(items) == 3 and items[0].startswith(f"1. {layer.features['cand_1'][e]}")
-    assert f"({layer.features['prob_1'][e]:.2f})" in items[0]
+    assert f"({np.floor(layer.features['prob_1'][e] * 100 + 1e-9) / 100:.2f})" in items[0]  # rounded down
     assert widget._completer.model().rowCount() > 50  # completion over known neuron names
     widget.candidate_combo.activated.emit(0)  # choosing in the dropdown gives the candidate
     assert layer.features["user_id"][e] == layer.features["cand_1"][e] and widget.last_error is None

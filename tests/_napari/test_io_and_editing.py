@@ -13,6 +13,8 @@ from napari_fdlc._napari._io import write_neuron_csv
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.review import SESSION_SUFFIX
 from napari_fdlc.table import NeuronTable, read_table, write_table
+import csv
+from napari_fdlc.table import write_neuropal_id
 
 
 def test_manifest_is_valid():
@@ -533,9 +535,11 @@ def test_the_sample_restores_a_renamed_neuron_id_layer_under_its_new_name(make_n
 NEUROPAL_NAMES = ["mNeptune2.5", "CyOFP1.5", "mTagBFP2", "TagRFP-T"]
 
 
-def _worm(n=6, seed=0, offset=0.0):
+def _worm(n=6, seed=0, offset=0.0, decimals=None):
     rng = np.random.default_rng(seed)
     xyz = rng.normal(0, 1, (n, 3)) * [30, 8, 6] + [60, 30, 15] + offset
+    if decimals is not None:
+        xyz = np.round(xyz, decimals)
     labels = np.array([f"N{i}" for i in range(n)], dtype=object)
     return NeuronTable(xyz, {c: rng.gamma(2.0, 100.0, n) for c in "RGB"}, labels)
 
@@ -1051,3 +1055,170 @@ def test_review_layer_features_keep_a_colour_gap(gap_table):
 
     feats = review_features(ReviewSession(gap_table))
     assert np.isnan(feats["R"].iloc[3]), feats["R"].iloc[3]
+
+
+def _open_and_save(path, out):
+    """The napari reader's layer data written back by the napari writer (what File > Open then
+    File > Save Selected Layers do, without moving a point)."""
+    from napari_fdlc._napari._io import get_table_reader, write_neuron_csv
+
+    reader = get_table_reader(str(path))
+    assert reader is not None, f"napari-fdlc declines {path}"
+    data, kwargs, _ = reader(str(path))[0]
+    return write_neuron_csv(str(out), data, {"scale": kwargs["scale"], "features": kwargs["features"]})[0]
+
+
+def test_a_neuropal_id_export_with_a_quoted_header_opens_in_napari(tmp_path):
+    """A NeuroPAL_ID "Save ID Info" CSV whose header is quoted ("User ID","User Confidence",...,
+    as R's write.csv or a spreadsheet re-saves it) is read by read_table (its NeuroPAL_ID header is
+    recognised quoted or not). Expected: napari-fdlc's table reader opens it too. Actual:
+    get_table_reader declines it (it looks for the bare text 'User ID,'), so napari says no
+    plugin can read the file."""
+    from napari_fdlc._napari._io import get_table_reader
+
+    worm = _worm(8)
+    plain = tmp_path / "plain_npid.csv"
+    write_neuropal_id(worm, plain, voxel_size_zyx=(1.5, 0.25, 0.25))
+    lines = plain.read_text().splitlines()
+    header = next(csv.reader([lines[7]]))
+    path = tmp_path / "resaved_npid.csv"
+    path.write_text("\n".join(lines[:7] + [",".join(f'"{h}"' for h in header)] + lines[8:]) + "\n")
+    assert list(read_table(path).labels) == list(worm.labels)  # the core reads it, names and all
+
+    assert get_table_reader(str(path)) is not None, "the napari reader declines a NeuroPAL_ID table the core reads"
+
+
+def test_a_neuron_table_with_a_blank_line_above_its_header_opens_in_napari(tmp_path):
+    """A table with an empty line (or Excel's row of bare commas) above its header is read by
+    read_table (blank rows above the header are skipped). Expected: napari-fdlc's table reader
+    opens it too. Actual: get_table_reader takes the blank first line for the header and declines
+    the file: napari says no plugin can read it."""
+    from napari_fdlc._napari._io import get_table_reader
+
+    worm = _worm(8)
+    plain = tmp_path / "plain.csv"
+    write_table(worm, plain)
+    declined = []
+    for name, above in (("blank line.csv", "\n"), ("excel commas.csv", ",,,,,,,\n")):
+        path = tmp_path / name
+        path.write_text(above + plain.read_text())
+        assert len(read_table(path)) == len(worm)  # the core reads it
+        if get_table_reader(str(path)) is None:
+            declined.append(name)
+    assert not declined, f"the napari reader declines tables the core reads: {declined}"
+
+
+def test_a_point_added_to_an_opened_table_of_one_time_point_reopens(make_napari_viewer, tmp_path):
+    """A table of one time point with a 't' column (one volume of `fdlc segment`/`fdlc track`
+    output, t = 5 on every row) opens as one volume, its t a text feature. Expected: after adding a
+    point by hand and saving with the napari-fdlc writer, the file opens again (the added point at
+    t = 5, like every other). Actual: the added point gets the feature default '' for t, the file
+    is saved with an empty t cell, and opening it again fails: "line 8, column 't': an empty cell
+    is not a finite number" (two 't' values, '5' and '', make it a sequence)."""
+    worm = _worm(6)
+    df = worm.to_dataframe()
+    df.insert(0, "t", 5)
+    path = tmp_path / "one time point.csv"
+    write_table(df, path)
+    viewer = make_napari_viewer()
+    (layer,) = viewer.open(str(path), plugin="napari-fdlc")
+    assert layer.data.shape == (6, 3)
+    layer.add(np.array([[10.0, 20.0, 30.0]]))
+
+    out = tmp_path / "edited.csv"
+    _save_selected(viewer, layer, out)
+    saved = pd.read_csv(out, dtype=str, keep_default_na=False)
+    assert saved["t"].iloc[-1].strip() != "", "the point added by hand was saved with an empty t"
+    (again,) = viewer.open(str(out), plugin="napari-fdlc")
+    assert len(again.data) == 7
+
+
+def test_saving_an_opened_table_keeps_a_column_named_neuron_or_shown(tmp_path):
+    """gui.md: a neuron table opens with 'any other columns as features', and the writer saves 'the
+    layer's features'. Expected: a user's own columns 'neuron' (their neuron number) and 'shown'
+    come back in the saved file, as 'score' does. Actual: write_neuron_csv drops every feature
+    called 'neuron' or 'shown' (the names of the review layer's own features), so open -> save
+    silently loses those columns of the user's table."""
+    worm = _worm(6)
+    df = worm.to_dataframe()
+    df["neuron"] = np.arange(101, 107)
+    df["shown"] = ["yes", "no"] * 3
+    df["score"] = np.linspace(0.1, 0.6, 6)
+    path = tmp_path / "mine.csv"
+    write_table(df, path)
+
+    out = _open_and_save(path, tmp_path / "saved.csv")
+    saved = pd.read_csv(out, dtype=str, keep_default_na=False)
+    lost = [c for c in ("neuron", "shown", "score") if c not in saved.columns]
+    assert not lost, f"columns lost by open -> save: {lost} (saved: {list(saved.columns)})"
+    assert list(saved["neuron"]) == [str(v) for v in range(101, 107)]
+
+
+def test_saving_an_opened_table_keeps_its_pixel_columns_when_they_give_no_voxel_size(tmp_path):
+    """A table whose x_px, y_px, z_px do not scale to its µm (here the stage offset of a crop: x_um
+    = 10 + 0.25 x_px) opens in µm, its pixel columns kept as features. Expected: open -> save keeps
+    the x_px, y_px, z_px columns and their values. Actual: the writer drops the x_px/y_px/z_px
+    features and writes pixel columns only for a scaled layer, so the file saved has none: the
+    user's pixel coordinates are lost."""
+    worm = _worm(6, decimals=2)
+    df = worm.to_dataframe()
+    df["x_px"] = (worm.xyz[:, 0] - 10.0) / 0.25
+    df["y_px"] = (worm.xyz[:, 1] - 5.0) / 0.25
+    df["z_px"] = worm.xyz[:, 2] / 1.5
+    path = tmp_path / "crop.csv"
+    write_table(df, path)
+
+    out = _open_and_save(path, tmp_path / "saved.csv")
+    saved = pd.read_csv(out)
+    lost = [c for c in ("x_px", "y_px", "z_px") if c not in saved.columns]
+    assert not lost, f"columns lost by open -> save: {lost} (saved: {list(saved.columns)})"
+    assert np.allclose(saved["x_px"], df["x_px"], atol=1e-3)
+
+
+def test_saving_the_sample_neuron_table_unchanged_keeps_its_positions(tmp_path):
+    """Open -> save must give the same positions (write_table writes µm 'to the last digit': a
+    position written back is the one read). Expected: the bundled sample's neuron table
+    (sample_neurons.csv, with x_px, y_px, z_px) opened in napari and saved unchanged with the
+    napari-fdlc writer has exactly the positions read. Actual: the reader puts the points at µm /
+    voxel, with a voxel size inferred from x_px written to 6 digits (1.1999993 for 1.2), and the
+    writer multiplies back: about one position in six comes back off in its last bits
+    (15.434 -> 15.434000000000001), and every further save moves more of them."""
+    from napari_fdlc import sample
+
+    path = sample.sample_paths()[1]
+    if not path.exists():
+        import pytest
+
+        pytest.skip("the package does not ship the sample neuron table")
+    out = _open_and_save(path, tmp_path / "saved.csv")
+    before = pd.read_csv(path, dtype=str, keep_default_na=False)
+    after = pd.read_csv(out, dtype=str, keep_default_na=False)
+    changed = {c: int((before[c].astype(float).to_numpy() != after[c].astype(float).to_numpy()).sum())
+               for c in ("x_um", "y_um", "z_um")}
+    assert not any(changed.values()), (
+        f"positions changed by open -> save (of {len(before)}): {changed}; e.g. "
+        f"{before['x_um'][before['x_um'] != after['x_um']].head(2).tolist()} -> "
+        f"{after['x_um'][before['x_um'] != after['x_um']].head(2).tolist()}")
+
+
+def test_a_plain_3d_tiff_is_not_refused_with_advice_only_the_command_line_can_follow(tmp_path):
+    """A plain TIFF of one 3D array (tifffile.imwrite(path, zyx), the commonest way a script saves
+    a stack) does not record its axes. Expected in napari: it opens (3 axes with several planes:
+    Z, Y, X, in pixels until the voxel size is set, as an uncalibrated stack does), or a one-line
+    message saying what a napari user can do. Actual: read_stack_layers refuses it with the
+    command-line/script advice "give them, e.g. --axes ZYX (axes='ZYX')", which napari's File >
+    Open offers no way to give (napari-fdlc's earlier fix for the voxel size, the same case)."""
+    import tifffile
+
+    from napari_fdlc._napari._io import read_stack_layers
+    from napari_fdlc.errors import FdlcError
+
+    path = tmp_path / "stack.tif"
+    tifffile.imwrite(path, np.random.default_rng(0).integers(0, 1000, (6, 30, 40)).astype(np.uint16))
+    try:
+        layers = read_stack_layers(str(path))
+    except FdlcError as exc:
+        message = str(exc)
+        assert "--axes" not in message and "axes=" not in message, f"napari shows: {message}"
+        return
+    assert layers and np.shape(layers[0][0]) == (6, 30, 40)

@@ -64,15 +64,24 @@ def get_stack_reader(path):
 def read_stack_layers(path) -> list[tuple]:
     """A stack's channels as image layers (a recording's as t, z, y, x layers), with the
     annotated neurons of an NWB file and a saved Auto-label session."""
-    from ..io.images import Stack, VoxelSizeUnknown, read_series
+    from ..io.images import AxesUnknown, ImageError, Stack, VoxelSizeUnknown, read_series
 
     p = _one_path(path)
-    unknown = False
+
+    def read(axes=None):
+        try:
+            return read_series(p, axes=axes), False
+        except VoxelSizeUnknown as exc:  # shown in pixels (the axes the file does say in µm) until set
+            return read_series(p, voxel_size=[1.0 if v is None else v for v in exc.known], axes=axes), True
+
     try:
-        series = read_series(p)
-    except VoxelSizeUnknown as exc:  # shown in pixels (the axes the file does say in µm) until set
-        unknown = True
-        series = read_series(p, voxel_size=[1.0 if v is None else v for v in exc.known])
+        series, unknown = read()
+    except AxesUnknown as exc:  # napari's File > Open has no --axes: a plain 3D array is a z-stack
+        if len(exc.shape) != 3:
+            raise ImageError(f"{p}: the TIFF does not say its axes (shape {exc.shape}); save it as an ImageJ hyperstack "
+                             "or OME-TIFF, which say them (Fiji: Image > Hyperstacks > Stack to Hyperstack)") from None
+        series, unknown = read("ZYX")
+        warn(f"{p}: the TIFF does not say its axes; opened as one channel of z, y, x planes")
     # A voxel size set in napari for this image (Auto-label's row) is kept by its session: the
     # file opened again takes it, whether the file says none or says another. The session is
     # read once, for this and to be restored below.
@@ -187,14 +196,15 @@ def get_table_reader(path):
             head = "".join(fh.readline() for _ in range(12))
     except OSError:
         return None
+    from ..table import neuropal_id_header
+
     lines = head.splitlines()
     if lines and lines[0].strip().lower().startswith("sep="):  # Excel's separator line, skipped by the reader
         lines = lines[1:]
-    first = lines[0] if lines else ""
-    header = [h.strip() for h in next(csv.reader([first]), [])]  # quoted names too (R's write.csv)
+    rows = [[h.strip() for h in next(csv.reader([line]), [])] for line in lines]  # quoted names too (R's write.csv)
+    header = next((cells for cells in rows if any(cells)), [])  # blank lines and ',,,' above it, as the reader
     ours = all(c in header for c in ("x_um", "y_um", "z_um"))
-    neuropal = "User ID," in head and "Real X (um)" in head
-    return read_table_layer if (ours or neuropal) else None
+    return read_table_layer if (ours or neuropal_id_header(lines) is not None) else None
 
 
 @warnings_to(notify_warning)
@@ -241,7 +251,7 @@ def _voxel_from_columns(table) -> tuple | None:
         ratio = table.xyz[ok, um] / v[ok]
         if not (np.all(ratio > 0) and np.ptp(ratio) < 1e-3 * np.median(ratio)):
             return None
-        size.append(float(np.median(ratio)))
+        size.append(float(f"{np.median(ratio):.6g}"))  # x_px is written to 6 digits: 1.1999993 is 1.2
     return tuple(size)
 
 
@@ -287,7 +297,10 @@ def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
                         "neuron table is in the image's axes; reset its transform (layer.affine = identity) first")
     scale = _per_axis(attributes.get("scale"), dims, 1.0)
     translate = _per_axis(attributes.get("translate"), dims, 0.0)
+    scaled = not np.allclose(scale[-3:], 1.0) or not np.allclose(translate[-3:], 0.0)
     world = data * scale + translate
+    if scaled:  # µm divided by the voxel size and multiplied back: the digits read, not the last bits of that
+        world = np.array([float(f"{v:.15g}") for v in world.ravel()]).reshape(world.shape)
     varying = [k for k in range(dims - 3) if np.ptp(world[:, k]) > 0]
     feats = attributes.get("features")
     has_t = feats is not None and "t" in pd.DataFrame(feats).columns
@@ -302,14 +315,23 @@ def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     feats = feats.reset_index(drop=True)
     if has_t and dims >= 4:
         feats["t"] = _times_of_frames(world[:, -4], feats["t"])
+    elif has_t:  # one volume with a t column: a point added by hand is at its time too
+        blank = feats["t"].isna() | feats["t"].astype(str).str.strip().eq("")
+        known = pd.unique(feats["t"][~blank])
+        if blank.any() and len(known) == 1:
+            feats["t"] = feats["t"].astype(object).where(~blank, known[0])
     if "label" not in feats.columns and "name" in feats.columns:  # the Track widget's points name their neurons so
         feats = feats.rename(columns={"name": "label"})
     for c in [c for c in COLOUR_CHANNELS if c in feats.columns] + ["label"]:
         df[c] = feats[c].to_numpy() if c in feats.columns else ""
+    # the review layer's own columns ('neuron', 'shown'), and voxel coordinates written anew
+    # below; a table's own columns of those names are kept
+    review = "session" in (((attributes.get("metadata") or {}).get(META_KEY)) or {})
+    left_out = ({"neuron", "shown"} if review else set()) | ({"x_px", "y_px", "z_px"} if scaled else set())
     for c in feats.columns:
-        if c not in df.columns and c not in ("neuron", "shown", "x_px", "y_px", "z_px"):
+        if c not in df.columns and c not in left_out:
             df[c] = feats[c].to_numpy()
-    if not np.allclose(scale[-3:], 1.0) or not np.allclose(translate[-3:], 0.0):
+    if scaled:
         df["x_px"], df["y_px"], df["z_px"] = data[:, 2], data[:, 1], data[:, 0]
     path = str(path)
     if not path.lower().endswith(".csv"):

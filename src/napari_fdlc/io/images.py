@@ -60,6 +60,14 @@ class ImageError(FdlcError, ValueError):
     """An image file (or image parameters) that cannot be used."""
 
 
+class AxesUnknown(ImageError):
+    """A plain TIFF that does not say which of its axes is z, c or t; ``shape`` is its data's."""
+
+    def __init__(self, message: str, shape: tuple):
+        super().__init__(message)
+        self.shape = shape
+
+
 class VoxelSizeUnknown(ImageError):
     """The file does not say its voxel size (or not on every axis); ``known`` holds what it
     says, z, y, x in µm (None where it is silent)."""
@@ -494,9 +502,9 @@ def read_tiff(
         unknown = [n for a, n in zip(file_axes, data.shape) if a in "QI" and n > 1]
         if unknown:
             example = {3: "ZYX", 4: "ZCYX", 5: "TZCYX"}.get(data.ndim, "ZCYX")
-            raise ImageError(
+            raise AxesUnknown(
                 f"{source}: the TIFF does not say its axes (shape {tuple(data.shape)}); "
-                f"give them, e.g. --axes {example} (axes='{example}')"
+                f"give them, e.g. --axes {example} (axes='{example}')", tuple(data.shape)
             )
     return finish_stack(data, file_axes, source, voxel, names, voxel_size, channels, roles=roles, time=time)
 
