@@ -367,7 +367,7 @@ def test_an_r_na_label_is_unnamed_not_a_neuron_called_na(tmp_path, small_worm, c
 def test_a_neuropal_id_export_with_spaces_around_its_header_names_is_read(tmp_path, small_worm):
     """A NeuroPAL_ID export whose header cells carry spaces around the names ('User ID, Real X
     (um), ...', as a hand-edited or re-exported file has them) is recognised as a NeuroPAL_ID
-    export (table._neuropal_id_header strips the cells), but _from_neuropal_id renames the
+    export (table.neuropal_id_header strips the cells), but _from_neuropal_id renames the
     columns by the unstripped names, so the read refuses it as "missing column(s) Real X (um),
     Real Y (um), Real Z (um)" — columns that are there. Expected: read as the same export
     without spaces is (the reader says "spaces around names do not count" elsewhere)."""
