@@ -23,6 +23,7 @@ from napari_fdlc.errors import FdlcError
 from napari_fdlc.io.images import Stack, write_tiff
 from napari_fdlc.render import random_worm, render_stack
 from napari_fdlc.segment import detect_nuclei, measure_colours, score_detections, segment_stack
+import warnings
 
 VOX = (1.0, 0.25, 0.25)
 ROLES = ["R", "G", "B", "W"]
@@ -442,3 +443,91 @@ def test_detect_nuclei_zero_diameter_blames_the_diameter():
 
     with pytest.raises(ImageError, match="diameter"):
         detect_nuclei(np.zeros((4, 8, 8), np.float32), (1.0, 0.5, 0.5), diameter_um=0.0)
+
+
+def _two_clipped_side_by_side(over: float):
+    centres = [(8.0, 12.0, 10.0), (8.0, 12.0, 12.7)]  # 2.6 µm nuclei, 2.7 µm apart in x: touching
+    plain = _balls(centres, 1.3, over * 3995)
+    assert len(segment_stack(Stack(plain[None], VOX, ["W"]))) == 2  # unclipped: both found
+    clipped = np.minimum(plain, 4095).astype(np.uint16)  # a 12-bit camera
+    return centres, segment_stack(Stack(clipped[None], VOX, ["W"]))
+
+
+def test_two_touching_saturated_nuclei_side_by_side_stay_two():
+    """docs/segmentation.md step 5: "two clipped neighbours have two plateaus and stay two".
+    Two touching 2.6 µm nuclei side by side in x (2.7 µm apart), W clipped at 3x over a 12-bit
+    range: their clipped regions touch (the PSF), so segment._one_per_saturated_nucleus sees
+    one plateau (4-5 µm long, under its 2-diameter limit) and merges both detections into one,
+    placed midway (x 11.3 µm) where there is no nucleus. Expected: two, each within 1 µm."""
+    centres, found = _two_clipped_side_by_side(3.0)
+    zyx = found.xyz[:, ::-1]
+    assert len(found) == 2, np.round(zyx, 2).tolist()
+    nearest = np.linalg.norm(zyx[:, None] - np.array(centres)[None], axis=2).min(axis=0)
+    assert (nearest < 1.0).all(), nearest
+
+
+def test_two_touching_nuclei_clipped_hard_are_not_five():
+    """The same two touching nuclei clipped at 5x over range: their joint plateau is longer
+    than 2 diameters (6 µm), so _one_per_saturated_nucleus takes it for "neighbours blurred
+    into one" and leaves every maximum of the band-pass's ring around it: 5 nuclei for 2.
+    Expected: 2."""
+    _, found = _two_clipped_side_by_side(5.0)
+    assert len(found) == 2, np.round(found.xyz[:, ::-1], 2).tolist()
+
+
+def _nucleus_near_the_first_plane(cz: float, vz: float, shape=(10, 64, 64)):
+    """One 2.8 µm nucleus centred at z = ``cz`` µm (x = y = 8 µm), drawn on a 5x finer z grid
+    that extends past the stack and sampled at ``vz`` µm planes from z = 0."""
+    up, pad = 5, 15
+    zf = (np.arange(-pad, shape[0] * up + pad) * vz / up)[:, None, None]
+    y = (np.arange(shape[1]) * 0.25)[None, :, None]
+    x = (np.arange(shape[2]) * 0.25)[None, None, :]
+    ball = (np.sqrt((zf - cz) ** 2 + (y - 8) ** 2 + (x - 8) ** 2) <= 1.4).astype(float)
+    blob = ndimage.gaussian_filter(ball, (0.7 / (vz / up), 0.15 / 0.25, 0.15 / 0.25))[pad::up][: shape[0]]
+    img = np.random.default_rng(0).poisson(100 + 2000 * blob / blob.max())
+    return Stack(img[None].astype(np.uint16), (vz, 0.25, 0.25), ["W"])
+
+
+def test_a_nucleus_between_the_first_two_planes_gets_a_sub_voxel_centre():
+    """docs step 4: "Sub-voxel centres: vertex of a parabola through the response along each
+    axis". A nucleus centred 0.6 µm into a stack of 1.5 µm planes (between plane 0 and plane
+    1) is placed at z = 0.0 exactly: _parabola_offsets skips every maximum in the first or
+    last plane (no sample beyond it), so the centre snaps to the plane, 0.6 µm off (the
+    documented target is 0.5 µm; away from the edge the same nucleus is placed within
+    0.15 µm). Expected: within 0.3 µm."""
+    inside = segment_stack(_nucleus_near_the_first_plane(4.0, 1.5))
+    assert len(inside) == 1 and abs(inside.xyz[0, 2] - 4.0) < 0.3  # away from the edge: fine
+    found = segment_stack(_nucleus_near_the_first_plane(0.6, 1.5))
+    assert len(found) == 1
+    assert abs(found.xyz[0, 2] - 0.6) < 0.3, f"z = {found.xyz[0, 2]:.2f} µm, truly 0.6"
+
+
+def test_colours_of_float64_counts_near_float64_s_range_are_z_scored():
+    """The z-scores do not depend on the scale of a channel (test_segment_robustness:
+    float64 counts x 1e40 read as unscaled). At x 1e300 (finite float64) the nuclei are still
+    found, but measure_colours' z-score takes value.std(), whose squares overflow to inf:
+    RuntimeWarnings on stderr and every R, G, B, W written as 0 (no colour), silently.
+    Expected: the same z-scores as the unscaled stack, without warnings."""
+    centres = [(z, y, x) for z in (5.0, 10.0) for y in (5.0, 11.0, 17.0) for x in (5.0, 11.0)]
+    w = _balls(centres, 1.3, 800, seed=1)
+    brightness = np.linspace(200, 1200, len(centres))
+    r = sum(_balls([c], 1.3, b, seed=2 + k) - 100 for k, (c, b) in enumerate(zip(centres, brightness))) + 100
+    data = np.stack([r, w])
+    base = segment_stack(Stack(data, VOX, ["R", "W"]))
+    assert len(base) == 12
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scaled = segment_stack(Stack(data * 1e300, VOX, ["R", "W"]))
+    assert len(scaled) == 12
+    np.testing.assert_allclose(scaled.colours["R"], base.colours["R"], atol=0.01)
+    np.testing.assert_allclose(scaled.colours["W"], base.colours["W"], atol=0.01)
+
+
+def _clean_nuclei(peaks, shape=(16, 96, 96)):
+    """12 nuclei (2.6 µm) of the given brightness over a flat background of 100, no noise."""
+    centres = [(z, y, x) for z in (5.0, 10.0) for y in (5.0, 11.0, 17.0) for x in (5.0, 11.0)]
+    z, y, x = np.ogrid[: shape[0], : shape[1], : shape[2]]
+    img = np.zeros(shape)
+    for c, p in zip(centres, peaks):
+        img += p * (np.sqrt((z * 1.0 - c[0]) ** 2 + (y * 0.25 - c[1]) ** 2 + (x * 0.25 - c[2]) ** 2) <= 1.3)
+    return 100 + ndimage.gaussian_filter(img, (0.7, 0.6, 0.6))

@@ -54,7 +54,6 @@ from .table import NeuronTable, positions
 Progress = Callable[[float, str], None]
 MAX_DIAMETER_UM = 20.0  # a nucleus diameter beyond this is not a nucleus (neurons' are 2-4 µm)
 SATURATED_MIN_VOXELS = 8  # voxels at the volume's maximum that make a clipped plateau
-SATURATED_MAX_EXTENT = 2.0  # nuclei: a longer plateau is clipped neighbours blurred into one (one clipped 5-10x: 1.7 in z)
 MAX_THRESHOLD = 1000.0  # noise SDs: nuclei stand 10-100 SDs above the noise; beyond this, nothing
 # Below it noise maxima pass as nuclei, more of them than a worm has neurons, and slowly: the
 # bundled sample (151 nuclei) gives 159 at 2 SDs, 6521 at 1.5 and 16508 at 0.5 (in 84 s).
@@ -386,44 +385,68 @@ def _parabola_offsets(response: np.ndarray, idx: np.ndarray) -> np.ndarray:
         denom = f_lo - 2 * centre + f_hi
         valid = (denom < 0) & (lo[:, axis] != idx[:, axis]) & (hi[:, axis] != idx[:, axis])
         step = np.where(valid, 0.5 * (f_lo - f_hi) / np.where(valid, denom, -1.0), 0.0)
+        # In the first or last plane: the parabola through it and the two samples inside (a
+        # nucleus between the first two planes was put on the first)
+        for edge, inward in ((0, 1), (response.shape[axis] - 1, -1)):
+            at = idx[:, axis] == edge
+            if response.shape[axis] < 3 or not at.any():
+                continue
+            one, two = idx[at].copy(), idx[at].copy()
+            one[:, axis], two[:, axis] = edge + inward, edge + 2 * inward
+            f0, f1, f2 = centre[at], response[tuple(one.T)], response[tuple(two.T)]
+            curve, slope = 0.5 * (f0 - 2 * f1 + f2), 0.5 * (4 * f1 - 3 * f0 - f2)  # f0 + slope x + curve x², x inward
+            bent = curve < 0
+            step[at] = np.where(bent, -slope / (2 * np.where(bent, curve, -1.0)), 0.0) * inward
         offsets[:, axis] = np.clip(step, -0.5, 0.5)
     return offsets
 
 
 def _one_per_saturated_nucleus(volume, vox: np.ndarray, zyx: np.ndarray, score: np.ndarray, diameter_um: float):
-    """Detections on one saturated plateau (voxels at the volume's maximum, a clipped camera)
-    made one, at the plateau's centre: a flat-topped nucleus band-passes to a ring, whose maxima
-    (2.5-3 µm apart) were kept as two or three nuclei, and a lone one stayed on the ring (0.7-0.9
-    µm off). Left alone without a plateau of ``SATURATED_MIN_VOXELS`` (an unclipped maximum is
-    a voxel or two), and on a plateau longer than ``SATURATED_MAX_EXTENT`` nuclei along an
-    axis: clipped neighbours blurred into one (two nuclei stacked in z), which the detections
-    already tell apart."""
+    """Detections on one saturated nucleus (voxels at the volume's maximum, a clipped camera)
+    made one, at the centre of its plateau: a flat-topped nucleus band-passes to a ring, whose
+    maxima (2.5-3 µm apart) were kept as two or three nuclei, and a lone one stayed on the ring
+    (0.7-0.9 µm off). A plateau is split into its nuclei first: clipped neighbours blurred into
+    one plateau (touching side by side, or stacked in z) join at a waist, and each bulge about
+    a maximum of the distance to the plateau's edge is one nucleus (a lone nucleus, however
+    the PSF stretches it in z, has one). Left alone without a plateau of
+    ``SATURATED_MIN_VOXELS`` (an unclipped maximum is a voxel or two)."""
+    from skimage.morphology import h_maxima
+    from skimage.segmentation import watershed
+
     if len(zyx) == 0:
         return zyx, score
     top = np.max(volume)
     plateau = np.asarray(volume == top)
     if plateau.sum() < SATURATED_MIN_VOXELS:
         return zyx, score
-    # The ring's maxima lie just off the plateau: each detection joins the plateau nearest it
-    # within a third of a nucleus (plateaus apart stay apart: two clipped neighbours are two).
     regions, count = ndimage.label(plateau, np.ones((3, 3, 3), bool))
-    one_nucleus = [k + 1 for k, box in enumerate(ndimage.find_objects(regions))
-                   if all((b.stop - b.start) * v <= SATURATED_MAX_EXTENT * diameter_um for b, v in zip(box, vox))]
+    # Each plateau's nuclei: the watershed of its distance to the edge (µm) from the maxima
+    # that stand a voxel above their surroundings (not every voxel of a flat ridge)
+    parts, made = np.zeros(regions.shape, np.int32), 0
+    for k, box in enumerate(ndimage.find_objects(regions)):
+        mask = regions[box] == k + 1
+        depth = ndimage.distance_transform_edt(np.pad(mask, 1), sampling=vox)[1:-1, 1:-1, 1:-1]
+        seeds, found = ndimage.label(h_maxima(depth, float(np.min(vox))) & mask, np.ones((3, 3, 3), bool))
+        cut = watershed(-depth, seeds, mask=mask) if found > 1 else mask.astype(np.int32)
+        parts[box][mask] = cut[mask] + made
+        made += max(found, 1)
+    # The ring's maxima lie just off the plateau: each detection joins the part nearest it
+    # within a third of a nucleus (plateaus apart stay apart: two clipped neighbours are two).
     reach = np.maximum(np.round(diameter_um / 3 / vox), 1).astype(int)
-    region = np.zeros(len(zyx), int)
+    part = np.zeros(len(zyx), int)
     for i, centre in enumerate(np.clip(np.round(zyx / vox).astype(int), 0, np.array(volume.shape) - 1)):
         low = np.maximum(centre - reach, 0)
-        window = regions[tuple(slice(a, b + 1) for a, b in zip(low, centre + reach))]
+        window = parts[tuple(slice(a, b + 1) for a, b in zip(low, centre + reach))]
         near = np.argwhere(window > 0)
         if len(near):
             distance = np.linalg.norm((near + low) * vox - zyx[i], axis=1)
             if distance.min() <= diameter_um / 3:
-                region[i] = window[tuple(near[np.argmin(distance)])]
-    held = [r for r in np.unique(region[region > 0]) if r in one_nucleus]
+                part[i] = window[tuple(near[np.argmin(distance)])]
+    held = [int(r) for r in np.unique(part[part > 0])]
     keep = np.ones(len(zyx), bool)
     zyx, score = zyx.copy(), score.copy()
-    for r, centre in zip(held, ndimage.center_of_mass(plateau, regions, held)):
-        on = np.flatnonzero(region == r)
+    for r, centre in zip(held, ndimage.center_of_mass(plateau, parts, held)):
+        on = np.flatnonzero(part == r)
         first = on[np.argmax(score[on])]
         zyx[first] = np.asarray(centre) * vox
         keep[on[on != first]] = False
@@ -536,6 +559,8 @@ def measure_colours(
     if zscore:
         for role, value in out.items():
             if role != "GFP":
+                big = np.max(np.abs(value)) if len(value) else 0.0
+                value = value / big if np.isfinite(big) and big > 0 else value  # counts near float64's range: std overflows
                 sd = value.std()
                 out[role] = (value - value.mean()) / sd if sd > 0 else np.zeros_like(value)
     return out
