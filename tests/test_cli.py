@@ -590,3 +590,31 @@ def test_handedness_refuses_when_the_names_in_common_lie_in_a_plane(tmp_path, ca
         answers[how] = (rc, capsys.readouterr().out.strip().splitlines()[:1])
     assert all(rc == 2 for rc, _ in answers.values()), (
         f"a worm and its mirror image, both answered: {answers}")
+
+
+def test_handedness_refuses_a_reference_whose_names_in_common_lie_in_a_plane():
+    """evaluate.handedness now refuses a worm whose names in common with the reference lie in a
+    plane ("the answer comes from the names in common alone: flat there, a worm fits its mirror
+    as well"). The same holds for the reference: if its names in common lie in a plane, a
+    reflection across that plane leaves them in place, so a worm and its mirror image fit it
+    equally well. Expected: refused in one line (FdlcError), as for a flat worm. Instead only
+    the worm's names in common are checked: a 3D worm and its own mirror image both come out
+    "same" against a reference whose 10 names in common have z = 0 (the reference as a whole is
+    3D through names the worm lacks)."""
+    from napari_fdlc.evaluate import handedness
+
+    rng = np.random.default_rng(0)
+    names = [f"N{i}" for i in range(10)]
+    common = np.column_stack([rng.uniform(0, 100, 10), rng.uniform(0, 25, 10), np.zeros(10)])
+    others = np.column_stack([rng.uniform(0, 100, 6), rng.uniform(0, 25, 6), rng.choice([-10.0, 10.0], 6)])
+    reference = NeuronTable(np.vstack([common, others]), labels=names + [f"X{i}" for i in range(6)], source="ref.csv")
+    worm_xyz = common + np.column_stack([np.zeros((10, 2)), rng.uniform(-6, 6, 10)])
+    mirror_xyz = worm_xyz * np.array([1.0, 1.0, -1.0])
+    answers = []
+    for xyz in (worm_xyz, mirror_xyz):
+        try:
+            answers.append(handedness(NeuronTable(xyz, labels=names, source="worm.csv"), reference))
+        except FdlcError:
+            answers.append("refused")
+    assert answers == ["refused", "refused"], (
+        f"a worm and its mirror image against a reference flat in its names in common: {answers}")

@@ -410,3 +410,30 @@ def test_review_neuropal_export_leaves_a_colour_gap_empty(gap_table, tmp_path):
     out = session.export(tmp_path / "npid.csv", format="neuropal_id")
     back = read_table(out)
     assert "R" in back.colour_gaps and back.colour_gaps["R"][3], "the gap came back as a reading"
+
+
+def test_a_hand_added_neuron_cleared_while_re_label_ran_is_not_offered_its_name_at_1():
+    """ReviewSession.set_labelling(fixed_rows=...): "the rows whose names were fixed when the
+    labelling was made keep the machine's earlier answer even if their decision has been
+    cleared since" (a cleared decision must not leave "only its name at 1.00 as candidate").
+    A neuron added by hand has no earlier answer: _apply_labelling keeps its (empty) auto_id
+    but, finding no earlier candidates, takes the labelling's, which at a fixed row is the
+    user's name at 1.0. Expected: the cleared neuron is not offered the cleared name as the
+    machine's sure candidate. Instead candidates(3) == [('RMDR', 0.999999999)]."""
+    from test_review import VOXEL, _labelling, _table
+
+    from napari_fdlc.review import ReviewSession
+
+    session = ReviewSession(_table(), _labelling(), threshold=0.5, voxel_size_zyx=VOXEL)
+    t = session.table
+    added = NeuronTable(np.vstack([t.xyz[[0, 1, 2]], [[1.0, 2.0, 3.0]]]),
+                        {c: np.append(v[[0, 1, 2]], 0) for c, v in t.colours.items()},
+                        extra=pd.DataFrame({"radius_um": np.full(4, 1.5)}))
+    session.replace_table(added, [0, 1, 2, None])  # neuron 3 added by hand
+    session.assign(3, "RMDR")
+    fixed = session.fixed()  # Re-label starts with RMDR fixed at neuron 3
+    session.clear(3)  # cleared while it runs
+    session.set_labelling(_labelling(fixed=fixed), "re-label", fixed_rows=fixed)
+    cands = session.candidates(3)
+    assert not (cands and cands[0][0] == "RMDR" and cands[0][1] > 0.99), (
+        f"the cleared name is offered as the machine's sure answer: {cands}")

@@ -140,9 +140,12 @@ def handedness(worm: NeuronTable, reference: NeuronTable | None = None) -> str:
     for table in (worm, reference) if reference is not None else (worm,):
         refuse_flat(table.xyz[table.named], table.source, min_neurons=6)
     # the answer comes from the names in common alone: flat there, a worm fits its mirror as well
-    common = set(worm.labels[worm.named]) & {n for n in names if n}
-    refuse_flat(worm.xyz[np.isin(worm.labels, list(common))], f"{worm.source} (its names in common with the reference)",
+    common = list(set(worm.labels[worm.named]) & {n for n in names if n})
+    refuse_flat(worm.xyz[np.isin(worm.labels, common)], f"{worm.source} (its names in common with the reference)",
                 min_neurons=6)
+    if reference is not None:
+        refuse_flat(reference.xyz[np.isin(reference.labels, common)],
+                    f"{reference.source} (its names in common with the worm)", min_neurons=6)
     mirrored = mirrored_by_names(names, xyz, worm, min_names=6)
     if mirrored is None:
         raise FdlcError(f"{worm.source}: fewer than 6 named neurons in common with the reference; "

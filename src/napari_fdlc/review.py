@@ -629,12 +629,14 @@ class ReviewSession:
         cand, cand_p = labelling.candidates(K)
         # decided now, or fixed when the labelling was made (a decision cleared while it ran: the
         # labelling holds the fixed name at 1.0 there, no answer of the machine's)
-        keep = ({i for i, st in enumerate(s.status) if st != "auto"} | set(fixed_rows)) if s.labelled else set()
+        fixed = set(fixed_rows)
+        keep = ({i for i, st in enumerate(s.status) if st != "auto"} | fixed) if s.labelled else set()
         for j in range(n):
             # A decided neuron keeps the machine's earlier answer and candidates (the labelling
             # reports the user's fixed name there, at 1.0), so 'accepted' vs 'corrected' stays
-            # meaningful and clearing the decision offers the machine's choices again.
-            if j in keep and any(s.cand[j]):
+            # meaningful and clearing the decision offers the machine's choices again. One fixed
+            # without an earlier answer (added by hand) gets none: the 1.0 is the user's.
+            if j in keep and (any(s.cand[j]) or j in fixed):
                 continue
             if j not in keep:
                 s.auto_id[j] = str(labelling.auto_id[j] or "")

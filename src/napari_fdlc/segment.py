@@ -395,8 +395,8 @@ def _parabola_offsets(response: np.ndarray, idx: np.ndarray) -> np.ndarray:
             one[:, axis], two[:, axis] = edge + inward, edge + 2 * inward
             f0, f1, f2 = centre[at], response[tuple(one.T)], response[tuple(two.T)]
             curve, slope = 0.5 * (f0 - 2 * f1 + f2), 0.5 * (4 * f1 - 3 * f0 - f2)  # f0 + slope x + curve x², x inward
-            bent = curve < 0
-            step[at] = np.where(bent, -slope / (2 * np.where(bent, curve, -1.0)), 0.0) * inward
+            bent = curve < 0  # inward only: a vertex beyond the edge is a guess outside the image
+            step[at] = np.clip(np.where(bent, -slope / (2 * np.where(bent, curve, -1.0)), 0.0), 0.0, 0.5) * inward
         offsets[:, axis] = np.clip(step, -0.5, 0.5)
     return offsets
 
@@ -410,38 +410,37 @@ def _one_per_saturated_nucleus(volume, vox: np.ndarray, zyx: np.ndarray, score: 
     a maximum of the distance to the plateau's edge is one nucleus (a lone nucleus, however
     the PSF stretches it in z, has one). Left alone without a plateau of
     ``SATURATED_MIN_VOXELS`` (an unclipped maximum is a voxel or two)."""
-    from skimage.morphology import h_maxima
-    from skimage.segmentation import watershed
-
     if len(zyx) == 0:
         return zyx, score
     top = np.max(volume)
     plateau = np.asarray(volume == top)
     if plateau.sum() < SATURATED_MIN_VOXELS:
         return zyx, score
-    regions, count = ndimage.label(plateau, np.ones((3, 3, 3), bool))
-    # Each plateau's nuclei: the watershed of its distance to the edge (µm) from the maxima
-    # that stand a voxel above their surroundings (not every voxel of a flat ridge)
+    regions, _ = ndimage.label(plateau, np.ones((3, 3, 3), bool))
+    reach = np.maximum(np.round(diameter_um / 3 / vox), 1).astype(int)
+    on_regions = _nearest_label(regions, zyx, vox, reach, diameter_um / 3)
+    # The plateaus a detection lies on (an 8-bit stack has thousands), each split into its
+    # nuclei: the maxima of its distance to the edge (µm) within 0.8 of a nucleus (a flat
+    # ridge's voxels join into one), each voxel going to the nearest
     parts, made = np.zeros(regions.shape, np.int32), 0
-    for k, box in enumerate(ndimage.find_objects(regions)):
-        mask = regions[box] == k + 1
+    size = tuple(np.maximum(np.round(0.8 * diameter_um / vox), 1).astype(int) | 1)
+    boxes = ndimage.find_objects(regions)
+    for r in np.unique(on_regions[on_regions > 0]):
+        box = boxes[r - 1]
+        mask = regions[box] == r
         depth = ndimage.distance_transform_edt(np.pad(mask, 1), sampling=vox)[1:-1, 1:-1, 1:-1]
-        seeds, found = ndimage.label(h_maxima(depth, float(np.min(vox))) & mask, np.ones((3, 3, 3), bool))
-        cut = watershed(-depth, seeds, mask=mask) if found > 1 else mask.astype(np.int32)
+        peaks = mask & (depth == ndimage.maximum_filter(depth, size=size, mode="constant"))
+        seeds, found = ndimage.label(peaks, np.ones((3, 3, 3), bool))
+        cut = mask.astype(np.int32)
+        if found > 1:
+            centres = np.array(ndimage.center_of_mass(peaks, seeds, range(1, found + 1))) * vox
+            inside = np.argwhere(mask)
+            cut[tuple(inside.T)] = cKDTree(centres).query(inside * vox)[1] + 1
         parts[box][mask] = cut[mask] + made
         made += max(found, 1)
     # The ring's maxima lie just off the plateau: each detection joins the part nearest it
     # within a third of a nucleus (plateaus apart stay apart: two clipped neighbours are two).
-    reach = np.maximum(np.round(diameter_um / 3 / vox), 1).astype(int)
-    part = np.zeros(len(zyx), int)
-    for i, centre in enumerate(np.clip(np.round(zyx / vox).astype(int), 0, np.array(volume.shape) - 1)):
-        low = np.maximum(centre - reach, 0)
-        window = parts[tuple(slice(a, b + 1) for a, b in zip(low, centre + reach))]
-        near = np.argwhere(window > 0)
-        if len(near):
-            distance = np.linalg.norm((near + low) * vox - zyx[i], axis=1)
-            if distance.min() <= diameter_um / 3:
-                part[i] = window[tuple(near[np.argmin(distance)])]
+    part = _nearest_label(parts, zyx, vox, reach, diameter_um / 3)
     held = [int(r) for r in np.unique(part[part > 0])]
     keep = np.ones(len(zyx), bool)
     zyx, score = zyx.copy(), score.copy()
@@ -451,6 +450,21 @@ def _one_per_saturated_nucleus(volume, vox: np.ndarray, zyx: np.ndarray, score: 
         zyx[first] = np.asarray(centre) * vox
         keep[on[on != first]] = False
     return zyx[keep], score[keep]
+
+
+def _nearest_label(labels: np.ndarray, zyx: np.ndarray, vox: np.ndarray, reach: np.ndarray, within_um: float) -> np.ndarray:
+    """Per point (µm): the label of the labelled voxel nearest it within ``within_um`` (0: none),
+    looked for in a box of ``reach`` voxels about it."""
+    out = np.zeros(len(zyx), int)
+    for i, centre in enumerate(np.clip(np.round(zyx / vox).astype(int), 0, np.array(labels.shape) - 1)):
+        low = np.maximum(centre - reach, 0)
+        window = labels[tuple(slice(a, b + 1) for a, b in zip(low, centre + reach))]
+        near = np.argwhere(window > 0)
+        if len(near):
+            distance = np.linalg.norm((near + low) * vox - zyx[i], axis=1)
+            if distance.min() <= within_um:
+                out[i] = window[tuple(near[np.argmin(distance)])]
+    return out
 
 
 def _merge_without_valley(
