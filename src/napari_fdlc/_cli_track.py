@@ -147,18 +147,12 @@ def run(args: argparse.Namespace) -> int:
             print(f"fdlc track: {done}/{total} volumes ({rate:.0f}/s)", file=sys.stderr, flush=True)
 
     result = track(seq, references or None, identifier, settings, progress, method=args.method, follower=follower)
-    frame = result.frame(seq.volumes)
-    # the volumes' other columns: what the segmentation (or the table) measured, e.g. each
-    # neuron's GFP per time point, the activity trace of its track
     import pandas as pd
 
-    from .track import join_by_time
+    from .track import other_columns
 
-    measured = join_by_time(seq.volumes, seq.times).drop(columns=["t", "x_um", "y_um", "z_um", "label"])
-    # an earlier run's own columns (its name, track, file) are not this run's
-    earlier = {"neuron_index", "track_id", "track_conf", "name", "file", *frame.columns}
-    frame = pd.concat([frame, measured.drop(columns=[c for c in measured if c in earlier])], axis=1)
-    write_table(frame, out)
+    # with what the segmentation (or the table) measured, e.g. each neuron's GFP per time point
+    write_table(pd.concat([result.frame(seq.volumes), other_columns(seq)], axis=1), out)
     return 0
 
 

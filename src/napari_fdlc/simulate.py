@@ -100,6 +100,22 @@ def _cpd_warp(points: np.ndarray, target: np.ndarray) -> np.ndarray:
     return moved * scale
 
 
+def copied_colours(table: NeuronTable, origin: np.ndarray, rng: np.random.Generator, noise: float = 0.0) -> dict:
+    """``table``'s colours at its neurons' copies (``origin``: each copy's source row, -1 for a
+    spurious neuron, which takes some neuron's reading), times 1 ± ``noise`` (relative SD) on
+    the real ones. A neuron without a reading has none in its copy."""
+    real = origin >= 0
+    colours = {}
+    for ch, values in table.colours_as_read().items():
+        read = values[np.isfinite(values)]
+        v = np.full(len(origin), np.nan)
+        v[real] = values[origin[real]] * (rng.normal(1.0, noise, real.sum()) if noise else 1.0)
+        if (~real).any() and len(read):
+            v[~real] = rng.choice(read, (~real).sum())
+        colours[ch] = v
+    return colours
+
+
 def simulate_worm(
     table: NeuronTable,
     rng: np.random.Generator | int | None = None,
@@ -153,14 +169,7 @@ def simulate_worm(
     labels[real] = table.labels[origin[real]]
     conf = np.zeros(len(pts))
     conf[real] = table.label_conf[origin[real]]
-    colours = {}
-    for ch, values in table.colours_as_read().items():  # a neuron without a reading has none in its copy
-        read = values[np.isfinite(values)]
-        v = np.full(len(pts), np.nan)
-        v[real] = values[origin[real]]
-        if (~real).any() and len(read):  # a spurious neuron: some neuron's reading
-            v[~real] = rng.choice(read, (~real).sum())
-        colours[ch] = v
+    colours = copied_colours(table, origin, rng)
     extra = None
     # the real neurons' other columns go with them (empty on spurious ones), but not the voxel
     # coordinates of the positions they had

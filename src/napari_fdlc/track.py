@@ -53,7 +53,7 @@ from ._blas import one_blas_thread
 from .errors import FdlcError, TableError, warn
 from .geometry import Warp, canonical_frame, fit_warp, position_evidence, squared_distances
 from .match import assign, assign_log, min_cost_matching
-from .simulate import bend
+from .simulate import bend, copied_colours
 from .table import COORDS, NeuronTable, file_line, read_table, read_volume, repeated_names, with_unique_names
 
 UNTRACKED = -1
@@ -258,6 +258,15 @@ def join_by_time(volumes: list[NeuronTable], times: list | None = None) -> pd.Da
         df.insert(0, "t", t)
         frames.append(df)
     return pd.concat(frames, ignore_index=True)
+
+
+def other_columns(sequence: "Sequence") -> pd.DataFrame:
+    """Each neuron's own columns per time point beside what a track result writes
+    (:meth:`TrackResult.frame`): colours, GFP (the activity trace of its track), a user's. An
+    earlier run's track columns (its name, track, file) are not this run's and are left out."""
+    df = join_by_time(sequence.volumes, sequence.times)
+    written = ("t", "neuron_index", *COORDS, "label", "track_id", "track_conf", "name", "file")
+    return df.drop(columns=[c for c in written if c in df.columns])
 
 
 def _time_value(v: float):
@@ -794,15 +803,7 @@ def simulate_sequence(
         origin = np.concatenate([origin, np.full(len(spurious), -1)])
         order = rng.permutation(len(pts))
         pts, origin = pts[order] @ rotation + centre, origin[order]
-        real = origin >= 0
-        colours = {}
-        for ch, values in table.colours_as_read().items():  # a neuron without a reading has none here
-            read = values[np.isfinite(values)]
-            v = np.full(len(pts), np.nan)
-            v[real] = values[origin[real]] * rng.normal(1.0, 0.05, real.sum())
-            if (~real).any() and len(read):  # a spurious detection: some neuron's reading
-                v[~real] = rng.choice(read, (~real).sum())
-            colours[ch] = v
+        colours = copied_colours(table, origin, rng, noise=0.05)
         volumes.append(NeuronTable(pts, colours, source=f"synthetic sequence t={t}"))
         origins.append(origin)
     return volumes, origins

@@ -87,7 +87,7 @@ def track_layers(result, sequence, name: str = "sequence", frames: list[int] | N
     (colours, GFP, a folder's ``file``), so that they are saved as ``fdlc track`` writes them."""
     import pandas as pd
 
-    from ..track import join_by_time
+    from ..track import other_columns
 
     frames = list(range(len(sequence))) if frames is None else frames
     rows, points, feats = [], [], {"t": [], "track_id": [], "track_conf": [], "name": []}
@@ -101,11 +101,10 @@ def track_layers(result, sequence, name: str = "sequence", frames: list[int] | N
         feats["name"].extend(names)
         tracked = tid >= 0
         rows.append(np.column_stack([tid[tracked], np.full(tracked.sum(), frames[k]), zyx[tracked]]))
-    measured = join_by_time(sequence.volumes, sequence.times).drop(columns=["t", "x_um", "y_um", "z_um", "label"])
+    measured = other_columns(sequence)
     if any(sequence.sources):
         measured["file"] = np.repeat(np.asarray(sequence.sources, dtype=object), [len(v) for v in sequence.volumes])
-    features = pd.concat([pd.DataFrame(feats), _plain_features(measured.drop(columns=[c for c in measured if c in feats]))],
-                         axis=1)
+    features = pd.concat([pd.DataFrame(feats), _plain_features(measured)], axis=1)
     data = np.vstack(rows) if rows else np.zeros((0, 5))
     data = data[np.lexsort((data[:, 1], data[:, 0]))]  # napari wants tracks sorted by ID, then time
     track_names = {int(i): n for i, n in enumerate(result.names)}
@@ -375,6 +374,7 @@ class TrackWidget(QWidget):
         else:
             key, time_axis = str(Path(sequence_path).resolve()) if sequence_path else "", (1.0, 0.0)
         diameter = float(self.diameter_spin.value())
+        shown_as = name or Path(sequence_path).stem or "sequence"  # the layers' name
 
         warned: list[str] = []  # what the readers warn about, shown when the job ends
 
@@ -413,7 +413,8 @@ class TrackWidget(QWidget):
             report("tracking", 0, len(sequence))
             result = track(sequence, references, ident, TrackSettings(use_colour=use_colour),
                            progress=lambda done, total: report("tracking", done, total))
-            return sequence, result, frames
+            # the layers' data too (every neuron's columns over time), off the GUI thread
+            return sequence, result, track_layers(result, sequence, shown_as, frames, time_axis, image_key=key)
 
         @thread_worker(start_thread=False, ignore_errors=True)
         def work():
@@ -423,8 +424,7 @@ class TrackWidget(QWidget):
         worker = work()
         self._worker = worker
         self._set_busy(True)
-        name = name or Path(sequence_path).stem or "sequence"
-        worker.returned.connect(lambda out: self._show(*out, name, key, time_axis))
+        worker.returned.connect(lambda out: self._show(*out, shown_as, key))
         worker.errored.connect(self._on_error)
         worker.finished.connect(lambda: self._set_busy(False))
         def show_warnings():
@@ -454,17 +454,17 @@ class TrackWidget(QWidget):
         """Whether napari was closed under the job (its widgets are gone: the result is dropped)."""
         return not isalive(self.run_button)
 
-    def _show(self, sequence, result, frames, name: str, key: str, time_axis: tuple[float, float]) -> None:
+    def _show(self, sequence, result, made: list[tuple], name: str, key: str) -> None:
         if self._closed():
             return
         try:
-            self._add_layers(sequence, result, frames, name, key, time_axis)
+            self._add_layers(sequence, result, made, name, key)
         except Exception as exc:  # on the GUI thread, after the worker: said, not a traceback
             self._on_error(exc)
 
-    def _add_layers(self, sequence, result, frames, name, key, time_axis) -> None:
+    def _add_layers(self, sequence, result, made: list[tuple], name: str, key: str) -> None:
+        """Show the layers ``made`` by :func:`track_layers` in the worker."""
         self.sequence, self.result = sequence, result
-        made = track_layers(result, sequence, name, frames, time_axis, image_key=key)
         # A run on the same input replaces its layers; another input's result stays beside it.
         for layer in self._shown.pop(key, []):
             if layer in self.viewer.layers:
