@@ -1222,3 +1222,23 @@ def test_a_plain_3d_tiff_is_not_refused_with_advice_only_the_command_line_can_fo
         assert "--axes" not in message and "axes=" not in message, f"napari shows: {message}"
         return
     assert layers and np.shape(layers[0][0]) == (6, 30, 40)
+
+
+def test_fdlc_track_output_opens_with_the_names_of_its_tracks(tmp_path):
+    """`fdlc track` with a labelled reference writes each track's name in a `name` column (the
+    input's own names stay `label`); opened in napari its points showed no names at all."""
+    from napari_fdlc._napari._io import get_table_reader
+    from napari_fdlc.cli import main
+    from napari_fdlc.track import join_by_time
+
+    worm = _small_named_worm()
+    unnamed = NeuronTable(worm.xyz, worm.colours)
+    moved = NeuronTable(worm.xyz + 0.3, worm.colours)
+    write_table(join_by_time([unnamed, moved], [0, 1]), tmp_path / "recording.csv")
+    write_table(worm, tmp_path / "reference.csv")
+    out = tmp_path / "tracks.csv"
+    assert main(["track", str(tmp_path / "recording.csv"), "--reference", str(tmp_path / "reference.csv"),
+                 "--method", "geometry", "--out", str(out), "--quiet"]) == 0
+    data, kwargs, _ = get_table_reader(str(out))(str(out))[0]
+    assert kwargs.get("text", {}).get("string") == "{name}", "the tracks' names are not shown"
+    assert list(kwargs["features"]["name"][: len(worm)]) == list(worm.labels)

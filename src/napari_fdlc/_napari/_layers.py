@@ -213,8 +213,10 @@ def table_points(
         "axis_labels": ("z", "y", "x"),
         "metadata": {META_KEY: {"table": table.source}},
     }
-    if named:
-        kwargs["text"] = {"string": "{label}", "size": 9, "color": "white", "anchor": "upper_left"}
+    # fdlc track writes the name its tracks carry as `name` (its input's own names stay `label`)
+    shown = "label" if named else "name" if "name" in features and any(features["name"]) else None
+    if shown:
+        kwargs["text"] = {"string": f"{{{shown}}}", "size": 9, "color": "white", "anchor": "upper_left"}
     return (coords, kwargs, "points")
 
 
