@@ -109,10 +109,16 @@ def main(argv=None) -> int:
             drop_rows.append((lab, keep, np.mean([len(t) for t in subsets]), s.summary(), float(np.mean(s.conf))))
             print(f"{lab} keep {keep}: {drop_rows[-1][3]}", file=sys.stderr)
 
+    if not temperature_rows:
+        print(f"no fold model found under {args.runs} (benchmarks/leave_one_lab_out.py makes them): "
+              f"{args.out} left as it is", file=sys.stderr)
+        return 1
+    command = (f"python benchmarks/calibration.py --runs {args.runs} --fold-prefix {args.fold_prefix} "
+               f"--labs {' '.join(args.labs)} --pairs {args.pairs} --worms {args.worms}")
     lines = [
         "# Calibration on a lab never seen",
         "",
-        f"Made by `python benchmarks/calibration.py --pairs {args.pairs} --worms {args.worms}` "
+        f"Made by `{command}` "
         f"({(time.time() - started) / 60:.1f} min; see its docstring). Each lab with its fold model "
         "(trained, checkpoint chosen and calibrated on the other four labs).",
         "",

@@ -98,8 +98,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cpd-repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
-    if min(args.repeats, args.batch) < 1:
-        ap.error("--repeats and --batch must be at least 1")
+    if min(args.repeats, args.batch, args.cpd_repeats) < 1:
+        ap.error("--repeats, --batch and --cpd-repeats must be at least 1")
     load = os.getloadavg()  # before the run: what other jobs put on the machine, not this one's own
 
     import torch

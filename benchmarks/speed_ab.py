@@ -45,6 +45,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=20, help="pairs of runs")
     ap.add_argument("--frames", type=int, default=200)
     args = ap.parse_args(argv)
+    if args.rounds < 2:
+        ap.error("--rounds must be at least 2 (the quartiles of the ratios need two)")
     if not (args.base / "napari_fdlc" / "track.py").exists():
         ap.error(f"{args.base}: no napari_fdlc package there (give a checkout's src folder)")
 
@@ -57,10 +59,11 @@ def main(argv=None) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         base_track, base_identify = _import_other(args.base, Path(tmp))
-        source = generate_worm(seed=2)
+        # one recording, simulated by this checkout: both time the same volumes, whatever the
+        # other checkout's simulator does
+        sequence, _ = new_track.simulate_sequence(generate_worm(seed=2), 0, new_track.SequenceParams(frames=args.frames))
         runs = {}
         for name, track_mod, identify_mod in (("new", new_track, new_identify), ("base", base_track, base_identify)):
-            sequence, _ = track_mod.simulate_sequence(source, 0, track_mod.SequenceParams(frames=args.frames))
             identifier, follower = identify_mod.Identifier.load(None), identify_mod.default_tracker("cpu")
             runs[name] = (lambda t=track_mod, s=sequence, i=identifier, f=follower: t.track(s, identifier=i, follower=f))
         answers = {name: np.concatenate(run().track_id) for name, run in runs.items()}  # also warms up
