@@ -341,3 +341,53 @@ def test_positions_far_too_large_are_refused_not_rendered_into_a_tiny_empty_stac
     with pytest.raises(ImageError):
         stack, truth = render_stack(NeuronTable(worm.xyz * 1e20, worm.colours), **SMALL)
         pytest.fail(f"rendered a {stack.data.shape} stack with {len(truth)} of 6 neurons")
+
+
+def test_render_truth_keeps_a_missing_colour_reading_missing():
+    """Expected: a neuron without an R reading (NaN in the table, kept as a gap and written
+    back empty by NeuronTable) is, in the rendered ground truth, still without an R reading:
+    render_stack's docstring says the truth carries "the input colours", and make_sample writes
+    that truth as the sample's neuron table.
+    Instead: render_stack builds the truth from ``table.colours``, where the gap already holds
+    the volume's median, so the truth's neuron has R = the median and ``to_dataframe`` /
+    ``write_table`` write it as if it had been measured (the same defect was fixed in
+    simulate_worm)."""
+    worm = random_worm(8, size_um=(16, 8, 6), seed=1)
+    r = worm.colours["R"].copy()
+    r[2] = np.nan
+    table = NeuronTable(worm.xyz, {**worm.colours, "R": r})
+    assert np.isnan(table.to_dataframe()["R"].iloc[2])  # the source writes the gap back empty
+    _, truth = render_stack(table, seed=0, align=False, **SMALL)
+    assert len(truth) == 8
+    written = truth.to_dataframe()["R"].iloc[2]
+    assert np.isnan(written), f"the truth of the neuron without an R reading has R = {written} (the median)"
+
+
+@pytest.mark.parametrize("shape", [5, ("a", "b", "c")], ids=["one number", "text"])
+def test_render_shape_that_is_not_three_sizes_is_one_image_error(shape):
+    """Expected: a ``shape_zyx`` that is not 3 positive sizes is refused with render's own
+    ImageError ("shape_zyx must be 3 positive sizes ..."), as (0, 10, 10) and (-3, 10, 10) are.
+    Instead: a single number fails while the error message is being built
+    (``tuple(shape_zyx)``: TypeError 'int' object is not iterable), and text fails in
+    ``np.asarray(shape_zyx, dtype=int)`` with numpy's bare ValueError."""
+    worm = random_worm(6, size_um=(16, 8, 6), seed=1)
+    with pytest.raises(ImageError):
+        render_stack(worm, shape_zyx=shape, **SMALL)
+
+
+def test_render_recording_without_margin_keeps_every_neuron_in_the_truth():
+    """Expected: render_recording renders every volume into "one shape (the largest extent of
+    any volume), each volume centred in it", so each time point's truth holds all of its
+    neurons, row for row with the identities given (the truth carries no identity column, so a
+    dropped row silently misaligns every later one). render_stack on the same volume with the
+    same settings keeps all 4 neurons.
+    Instead: render_recording sizes the stack from the positions *before* render_stack pushes
+    close centres apart (spread_apart), so with ``margin_um=(0, 0, 0)`` the pushed neurons at
+    the ends lie just outside and are left out of the truth: 2 of 4 per volume."""
+    xyz = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [10.0, 0.0, 0.0], [5.0, 2.0, 1.0]])
+    volume = NeuronTable(xyz, {"R": [1.0, 2.0, 3.0, 4.0]})
+    settings = dict(margin_um=(0.0, 0.0, 0.0), voxel_size_zyx=(0.5, 0.25, 0.25), gut=False)
+    _, alone = render_stack(volume, align=False, **settings)
+    assert len(alone) == 4
+    _, truths = render_recording([volume, volume], [np.arange(4)] * 2, **settings)
+    assert [len(t) for t in truths] == [4, 4], f"truth sizes per time point: {[len(t) for t in truths]} of 4 neurons"

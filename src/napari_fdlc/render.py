@@ -146,11 +146,14 @@ def render_stack(
     if shape_zyx is None:
         shape = _shape_of(zyx.max(axis=0) - zyx.min(axis=0) + 2 * margin, vox)
     else:
-        shape = np.asarray(shape_zyx, dtype=int)
+        try:
+            shape = np.asarray(shape_zyx, dtype=int)
+        except (TypeError, ValueError):
+            shape = np.zeros(0, dtype=int)  # not sizes at all: refused below
         # the product in floats: in int64 (2**21, 2**21, 2**22) came to 0 and passed
         if shape.shape != (3,) or (shape < 1).any() or np.prod(shape.astype(float)) > MAX_VOXELS:
             raise ImageError(f"render: shape_zyx must be 3 positive sizes of at most {MAX_VOXELS:.0e} voxels in all, "
-                             f"not {tuple(shape_zyx)}")
+                             f"not {shape_zyx!r}")
     if np.prod(shape.astype(float)) > MAX_VOXELS:
         raise ImageError(f"render: the neurons span {tuple(int(v) for v in shape)} voxels, more than {MAX_VOXELS:.0e}: "
                          "are the positions in µm?")
@@ -243,7 +246,7 @@ def render_stack(
     extra["z_px"], extra["y_px"], extra["x_px"] = (zyx / vox).T
     truth = NeuronTable(
         xyz=zyx[:, ::-1],
-        colours={**{c: v for c, v in table.colours.items() if c in ("R", "G", "B")}, "W": w_bright},
+        colours={**{c: v for c, v in table.colours_as_read().items() if c in ("R", "G", "B")}, "W": w_bright},
         labels=table.labels,
         label_conf=table.label_conf,
         extra=extra,
@@ -280,7 +283,10 @@ def render_recording(
     p = _checked(RenderParams(**{**(params.__dict__ if params else {}), **overrides}))
     vox = np.asarray(p.voxel_size_zyx, dtype=float)
     margin = np.asarray(p.margin_um, dtype=float)
-    shape = _shape_of(np.max([np.ptp(v.xyz[:, ::-1], axis=0) for v in volumes], axis=0) + 2 * margin, vox)
+    # the extent of the positions as render_stack places them (close centres pushed apart): from
+    # the raw ones, with no margin, neurons pushed past the end were left out of the truth
+    placed = [spread_apart(v.xyz - v.xyz.mean(axis=0), p.min_spacing_um) for v in volumes]
+    shape = _shape_of(np.max([np.ptp(xyz[:, ::-1], axis=0) for xyz in placed], axis=0) + 2 * margin, vox)
     rendered = [render_stack(v, p, shape_zyx=shape, align=False, seed=seed + 1 + t, identity=ids, identity_seed=seed)
                 for t, (v, ids) in enumerate(zip(volumes, identities))]
     first = rendered[0][0]
