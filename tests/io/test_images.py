@@ -25,6 +25,8 @@ from napari_fdlc.io.images import (
 )
 from napari_fdlc.io.nwb import _text, read_nwb_neurons, write_nwb
 from napari_fdlc.table import NeuronTable
+import gc
+import warnings
 
 NAMES = ["mNeptune2.5", "CyOFP1.5", "mTagBFP2", "TagRFP-T"]
 
@@ -787,3 +789,79 @@ def test_a_stack_of_bare_pages_given_more_axes_says_how_to_save_it(tmp_path):
             writer.write(np.zeros((16, 16), np.uint16), metadata=None, contiguous=False)
     with pytest.raises(ImageError, match="12 pages do not record how they split into TZC: save it as an ImageJ hyperstack"):
         read_series(path, axes="TZCYX", voxel_size=(1.0, 0.3, 0.3))
+
+
+def _recording_tczyx(t=3, c=2, z=4, y=16, x=16):
+    return ((np.arange(t * c * z * y * x) * 7) % 4000 + 1).astype(np.uint16).reshape(t, c, z, y, x)
+
+
+@pytest.mark.parametrize("axes", [None, "QCZYX"], ids=["recording-for-a-stack", "bad-axes"])
+def test_a_lazily_read_tiff_that_is_refused_is_closed(tmp_path, monkeypatch, axes):
+    """A TIFF over 1 GiB is wrapped lazily; when it is then refused (a recording given to
+    read_stack, as napari / fdlc label users do with their long recordings, or axes that do
+    not fit), the TIFF should be closed like every other refused TIFF (read_tiff closes it on
+    its other errors). Instead it stays open until the garbage collector finds it: Python
+    reports "ResourceWarning: unclosed file" (on Windows the file stays locked while the
+    error is shown)."""
+    path = tmp_path / "rec.ome.tif"
+    tifffile.imwrite(path, _recording_tczyx(), ome=True,
+                     metadata={"axes": "TCZYX", "PhysicalSizeZ": 1.5, "PhysicalSizeY": 0.25, "PhysicalSizeX": 0.25})
+    monkeypatch.setattr(images, "LAZY_BYTES", 0)  # stands for a recording over 1 GiB
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ResourceWarning)
+        with pytest.raises(ImageError):
+            read_stack(path, axes=axes)
+        gc.collect()
+    unclosed = [str(w.message) for w in caught if issubclass(w.category, ResourceWarning) and path.name in str(w.message)]
+    assert not unclosed, unclosed
+
+
+class _FakeND2:
+    """The part of nd2.ND2File that read_nd2 uses, recording whether it was closed."""
+
+    def __init__(self, data, sizes):
+        self._data = data
+        self.sizes = sizes
+        self.dtype = data.dtype
+        self.metadata = SimpleNamespace(channels=[SimpleNamespace(channel=SimpleNamespace(name=n))
+                                                  for n in ("TagRFP-T", "GCaMP6s")])
+        self.closed = False
+
+    def voxel_size(self, channel=0):
+        return SimpleNamespace(x=0.25, y=0.25, z=1.5)
+
+    def asarray(self):
+        return self._data
+
+    def to_dask(self):
+        import dask.array as da
+
+        return da.from_array(self._data)
+
+    def close(self):
+        self.closed = True
+
+
+def test_a_lazily_read_nd2_recording_refused_as_a_stack_is_closed(tmp_path, monkeypatch):
+    """read_stack on an ND2 recording over 1 GiB (the usual size of a recording) refuses it
+    ("a recording of 3 time points"); read_nd2 closes the file on every other refusal (and
+    after an eager read), so this one should be closed too. Instead the ND2File is left open:
+    read_nd2 keeps it open for the dask array and finish_stack's refusal skips the close."""
+    data = _recording_tczyx().transpose(0, 2, 1, 3, 4)  # T, Z, C, Y, X as nd2 gives it
+    fake = _FakeND2(data, {"T": 3, "Z": 4, "C": 2, "Y": 16, "X": 16})
+    monkeypatch.setattr(images, "LAZY_BYTES", 0)
+    with pytest.raises(ImageError, match="recording"):
+        read_nd2(tmp_path / "rec.nd2", opener=lambda p: fake)
+    assert fake.closed, "the refused ND2 file was left open"
+
+
+def test_a_lazily_read_nd2_whose_data_do_not_fit_its_sizes_is_closed(tmp_path, monkeypatch):
+    """An ND2 file whose data shape differs from its sizes is refused in one line; read
+    lazily (over 1 GiB), the file should still be closed. Instead it is left open (the
+    shape check raises after the lazy branch skipped ``f.close()``)."""
+    data = _recording_tczyx()[0].transpose(1, 0, 2, 3)  # Z, C, Y, X
+    fake = _FakeND2(data, {"Z": 4, "C": 2, "Y": 16, "X": 17})  # sizes say one more column
+    monkeypatch.setattr(images, "LAZY_BYTES", 0)
+    with pytest.raises(ImageError, match="does not match"):
+        read_nd2(tmp_path / "w.nd2", opener=lambda p: fake)
+    assert fake.closed, "the refused ND2 file was left open"

@@ -485,6 +485,12 @@ def read_tiff(
     except BaseException:
         tif.close()
         raise
+    with _closed_on_error(tif):  # lazy data keep the file open: a refusal below must not
+        return _tiff_stack(data, file_axes, axes, source, voxel, names, voxel_size, channels, roles, time)
+
+
+def _tiff_stack(data, file_axes, axes, source, voxel, names, voxel_size, channels, roles, time):
+    """:func:`read_tiff`'s data as a Stack, on the axes given (``axes``) or recorded."""
     if axes is not None:
         axes = axes.upper()
         if len(axes) != data.ndim:
@@ -507,6 +513,17 @@ def read_tiff(
                 f"give them, e.g. --axes {example} (axes='{example}')", tuple(data.shape)
             )
     return finish_stack(data, file_axes, source, voxel, names, voxel_size, channels, roles=roles, time=time)
+
+
+@contextmanager
+def _closed_on_error(handle):
+    """Close ``handle`` (a file lazy data read from) when the block fails: the error may be
+    held for long (shown in napari), and an open file stays locked on Windows."""
+    try:
+        yield
+    except BaseException:
+        handle.close()
+        raise
 
 
 @contextmanager
@@ -733,11 +750,12 @@ def read_nd2(
         raise ImageError(f"{source}: the ND2 file cannot be read ({_first_line(exc)})") from None
     if not lazy:
         f.close()
-    if tuple(data.shape) != shape:
-        raise ImageError(f"{source}: ND2 data shape {tuple(data.shape)} does not match its sizes {sizes}")
-    if "P" in axes:  # one position
-        data, axes = data[tuple(0 if a == "P" else slice(None) for a in axes)], axes.replace("P", "")
-    return finish_stack(data, axes, source, voxel, names, voxel_size, channels, time=time)
+    with _closed_on_error(f):  # lazy data keep the file open: a refusal below must not
+        if tuple(data.shape) != shape:
+            raise ImageError(f"{source}: ND2 data shape {tuple(data.shape)} does not match its sizes {sizes}")
+        if "P" in axes:  # one position
+            data, axes = data[tuple(0 if a == "P" else slice(None) for a in axes)], axes.replace("P", "")
+        return finish_stack(data, axes, source, voxel, names, voxel_size, channels, time=time)
 
 
 def _nd2_channel_names(f) -> list[str] | None:
