@@ -418,7 +418,7 @@ def test_a_view_into_the_body_says_how_many_neurons_get_no_name(tmp_path, worm, 
 
 @pytest.mark.parametrize("case", ["simulate_seed", "atlas_frequency", "evaluate_pairs", "train_steps", "train_cuda",
                                   "segment_over_its_stack", "track_over_its_recording", "track_into_its_folder",
-                                  "label_a_recording", "label_empty_out", "simulate_into_a_file"])
+                                  "label_a_recording", "simulate_into_a_file"])
 def test_bad_values_are_one_line_before_any_work(tmp_path, table_files, capsys, case):
     test, template = table_files
     recording = tmp_path / "recording.csv"
@@ -444,7 +444,6 @@ def test_bad_values_are_one_line_before_any_work(tmp_path, table_files, capsys, 
         "track_over_its_recording": ["track", recording, "--out", recording],
         "track_into_its_folder": ["track", folder, "--out", folder / "tracks.csv"],
         "label_a_recording": ["label", recording, "--out", tmp_path / "ids.csv"],
-        "label_empty_out": ["label", test, "--out", ""],
         "simulate_into_a_file": ["simulate", test, "--out", template],
     }[case]
     before = {p: p.read_bytes() for p in (test, template, recording, stack, folder / "v0.csv")}
@@ -454,6 +453,23 @@ def test_bad_values_are_one_line_before_any_work(tmp_path, table_files, capsys, 
     assert {p: p.read_bytes() for p in before} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["recording.csv", "stack.tif", "template.csv", "test.csv", "volumes"]
     assert [p.name for p in folder.iterdir()] == ["v0.csv"]
+
+
+@pytest.mark.parametrize("args", [["label", "{test}", "--out", ""], ["label", "{test}", "--weights", " ", "--out", "{out}"],
+                                  ["label", "", "--out", "{out}"], ["track", "{test}", "--tracking-weights", "", "--out", "{out}"],
+                                  ["train", "--init-from", "", "--out", "{out}"]])
+def test_an_empty_value_is_refused_in_one_line(tmp_path, table_files, capsys, args):
+    """An empty value (an unset shell variable: --out "$OUT") is a usage mistake, not "not
+    given": `fdlc train --out ""` trained into the default runs/model, `--init-from ""` started
+    from random weights and `--weights ""` used the shipped model, each without a word."""
+    test, _ = table_files
+    args = [a.format(test=test, out=tmp_path / "out") for a in args]
+    with pytest.raises(SystemExit) as exit_:
+        run(*args)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "empty" in err[0], err
+    assert not (tmp_path / "out").exists()
 
 
 def test_train_refuses_resume_together_with_init_from(tmp_path, untrained_weights, capsys):

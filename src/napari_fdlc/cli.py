@@ -263,6 +263,19 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message):
         self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
+    def parse_known_args(self, args=None, namespace=None):
+        """An empty value (an unset shell variable: ``--out "$OUT"``) is refused: taken as not
+        given, ``--out ""`` trained into the default checkpoint and ``--weights ""`` used the
+        shipped model without a word."""
+        namespace, extras = super().parse_known_args(args, namespace)
+        for action in self._actions:
+            value = getattr(namespace, action.dest, None)
+            if any(isinstance(v, str) and not v.strip() for v in (value if isinstance(value, list) else [value])):
+                if action.option_strings:
+                    self.error(f"{action.option_strings[0]} was given an empty value: give one or leave the option out")
+                self.error(f"an empty {action.metavar or action.dest} was given")
+        return namespace, extras
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="fdlc", description="Identify and track C. elegans neurons (fDLC).")

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .colour import IDENTITY_CHANNELS
-from .errors import ModelError, _followed, model_files, plain_permissions
+from .errors import ModelError, _followed, model_files, one_line, plain_permissions
 
 DEFAULT_CONFIG = {
     "dim": 64,
@@ -37,6 +37,9 @@ DEFAULT_CONFIG = {
     "prior_sigma_um": 4.0,  # initial width of the geometric prior
     "colour_channels": 0,  # >0: per-neuron NeuroPAL colour (normal scores) is a model input too
 }
+
+WHOLE_BOUNDS = {"dim": (1, 4096), "heads": (1, 256), "layers": (1, 64), "fourier_bands": (0, 24), "colour_channels": (0, 3)}
+LENGTH_BOUNDS = (1e-3, 1e4)  # µm
 
 
 def model_config(config) -> dict:
@@ -49,15 +52,18 @@ def model_config(config) -> dict:
     unknown = sorted(set(full) - set(DEFAULT_CONFIG))
     if unknown:
         raise ModelError(f"unknown model setting(s) {', '.join(unknown)} (known: {', '.join(DEFAULT_CONFIG)})")
-    for key in ("dim", "heads", "layers", "fourier_bands", "colour_channels"):
+    # Bounds far beyond any useful model, short of what cannot be built or run: 2**k of 128
+    # Fourier bands overflows float32 (every score NaN), a width of 10**7 asks for terabytes,
+    # a length of 1e-200 µm divides by zero.
+    for key, (least, most) in WHOLE_BOUNDS.items():
         value = full[key]
-        least = 0 if key in ("fourier_bands", "colour_channels") else 1
-        if isinstance(value, bool) or not isinstance(value, int) or value < least:
-            raise ModelError(f"model setting {key} must be a whole number of at least {least} (got {value!r})")
+        if isinstance(value, bool) or not isinstance(value, int) or not least <= value <= most:
+            raise ModelError(f"model setting {key} must be a whole number from {least} to {most} (got {value!r})")
     for key in ("scale_um", "prior_sigma_um"):
         value = full[key]
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
-            raise ModelError(f"model setting {key} must be a positive number (got {value!r})")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not LENGTH_BOUNDS[0] <= value <= LENGTH_BOUNDS[1]:
+            raise ModelError(f"model setting {key} must be a length from {LENGTH_BOUNDS[0]:g} to {LENGTH_BOUNDS[1]:g} µm "
+                             f"(got {value!r})")
     if full["colour_channels"] not in (0, len(IDENTITY_CHANNELS)):  # what inference and training feed
         raise ModelError(f"model setting colour_channels must be 0 (positions only) or {len(IDENTITY_CHANNELS)} "
                          f"({', '.join(IDENTITY_CHANNELS)}) (got {full['colour_channels']})")
@@ -305,8 +311,8 @@ def load_model(path: str | Path) -> CorrespondenceModel:
         meta = json.loads(config_path.read_text())
         config = meta["config"]
         model = CorrespondenceModel(config)
-    except (ValueError, KeyError, TypeError, ModelError) as exc:
-        raise ModelError(f"{config_path}: not a valid model configuration ({exc})") from None
+    except (ValueError, KeyError, TypeError, ArithmeticError, RuntimeError, ModelError) as exc:
+        raise ModelError(f"{config_path}: not a valid model configuration ({one_line(exc)})") from None
     try:
         state = load_file(str(weights))
     except (SafetensorError, OSError, ValueError) as exc:

@@ -33,6 +33,7 @@ statistics — the bundled sample data is made this way.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
@@ -113,9 +114,7 @@ class Atlas:
         for table, given in zip(tables, names):
             if not has_colour(table):
                 continue
-            scores = normal_scores(table, IDENTITY_CHANNELS).copy()
-            for j, c in enumerate(IDENTITY_CHANNELS):  # a cell without a reading measures nothing
-                scores[table.colour_gaps.get(c, np.zeros(len(table), bool)), j] = np.nan
+            scores = _read_scores(table)
             for row, name in enumerate(given):
                 if name in index:
                     seen.setdefault(index[name], []).append(scores[row])
@@ -216,16 +215,22 @@ def _similarity(src: np.ndarray, dst: np.ndarray, allow_mirror: bool):
 MIN_ATLAS_NAMES = 10  # fewer names cannot place a worm (the registration needs a body to fit)
 
 
+def _read_scores(table: NeuronTable) -> np.ndarray:
+    """(N, 3) normal scores of the identity colours, NaN where a cell had no reading (the
+    median filler of :class:`NeuronTable` measures nothing)."""
+    scores = normal_scores(table, IDENTITY_CHANNELS).copy()
+    for j, c in enumerate(IDENTITY_CHANNELS):
+        scores[table.colour_gaps.get(c, np.zeros(len(table), bool)), j] = np.nan
+    return scores
+
+
 def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
     """Statistical atlas from labelled worms (a list of :class:`napari_fdlc.corpus.Worm`)."""
     tables = [w.table for w in worms]
     if not tables:
         raise FdlcError("no worms to build an atlas from")
     canon = [canonical_frame(t.xyz)[0] for t in tables]
-    colours = [
-        normal_scores(t, IDENTITY_CHANNELS) if has_colour(t) else None
-        for t in tables
-    ]
+    colours = [_read_scores(t) if has_colour(t) else None for t in tables]
     # the best-named worm anchors the alignment; a tie by lab and name, not by the order given
     counts = [int(t.named.sum()) for t in tables]
     reference = min(range(len(worms)), key=lambda k: (-counts[k], worms[k].lab, getattr(worms[k], "name", "")))
@@ -272,9 +277,12 @@ def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
                         f"{MIN_ATLAS_NAMES} names (give worms with a label column)")
     pos = [np.array(stats[n]["pos"]) for n in names]
     col = [np.array(stats[n]["col"]).reshape(-1, 3) for n in names]
-    if any(c is not None for c in colours):
-        colour = np.array([c.mean(0) if len(c) else np.zeros(3) for c in col])
-        colour_sd = np.array([c.std(0) if len(c) > 1 else np.ones(3) for c in col])
+    if any(c is not None for c in colours):  # per channel, over the worms with a reading of it
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a channel never read: the nan-mean of nothing
+            readings = [np.isfinite(c).sum(axis=0) for c in col]
+            colour = np.array([np.where(r >= 1, np.nanmean(c, axis=0), 0.0) for c, r in zip(col, readings)])
+            colour_sd = np.array([np.where(r >= 2, np.nanstd(c, axis=0), 1.0) for c, r in zip(col, readings)])
     else:  # no worm with colour: none in the atlas, not a made-up 0 ± 1 (its panel's colours random)
         colour = colour_sd = np.full((len(names), 3), np.nan)
     mean_pos = np.array([p.mean(0) for p in pos])
