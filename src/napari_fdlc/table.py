@@ -323,7 +323,10 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
     try:
         with warnings.catch_warnings():  # empty fields beyond the header (Excel's trailing commas) are dropped
             warnings.simplefilter("ignore", pd.errors.ParserWarning)
-            df = pd.read_csv(io.StringIO(text), skiprows=skiprows, dtype=str, keep_default_na=False, index_col=False)
+            # the header's columns only: pandas drops empty fields beyond it on the first row
+            # alone, and refused a later row's (their values were checked empty above)
+            df = pd.read_csv(io.StringIO(text), skiprows=skiprows, dtype=str, keep_default_na=False, index_col=False,
+                             usecols=range(len(header)) if header else None)
     except pd.errors.EmptyDataError:
         raise TableError(f"{name}: the file has no header row") from None
     except pd.errors.ParserError as exc:
