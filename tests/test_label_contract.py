@@ -14,6 +14,7 @@ from napari_fdlc.match import Labelling
 from napari_fdlc.reference import generate_worm
 from napari_fdlc.sample import sample_paths
 from napari_fdlc.table import NeuronTable, read_table, write_neuropal_id, write_table
+import csv
 
 
 def run(*args):
@@ -449,3 +450,97 @@ def test_label_shared_handedness_with_one_test_says_it_does_not_apply(tmp_path, 
     assert run("label", test, "--shared-handedness", "--out", tmp_path / "out.csv") == 0
     err = capsys.readouterr().err
     assert "--shared-handedness" in err, err
+
+
+def _cpd_files(tmp_path, worm, other_worm, n_test: int = 20, n_template: int = 40):
+    """A small test (no label) and a labelled template, for the model-free --method cpd."""
+    test, template = tmp_path / "test.csv", tmp_path / "template.csv"
+    write_table(worm.subset(np.arange(n_test)), test)
+    write_table(other_worm.subset(np.arange(n_template)), template)
+    return test, template
+
+
+def test_a_column_without_a_name_comes_back_without_one(tmp_path, worm, other_worm):
+    """neuron_table.md: "Other columns are kept when the table is read and written back";
+    docs/cli.md: the output carries "the test's other columns exactly as written". A test saved
+    by pandas' own `DataFrame.to_csv` (index kept, the most common way a script writes a CSV)
+    starts with a column whose header cell is empty. Expected: it comes back under the empty
+    header it had. Instead the output names it 'Unnamed: 0', pandas' invented name, a column
+    the input never had (table._read_csv keeps a filled blank-header column under pandas' name,
+    and label.labelling_frame / write_table write that name)."""
+    test, template = _cpd_files(tmp_path, worm, other_worm)
+    indexed = tmp_path / "indexed.csv"
+    pd.read_csv(test, keep_default_na=False).drop(columns="label").to_csv(indexed)  # header ",x_um,..."
+    assert indexed.read_text().startswith(",x_um,")
+    out = tmp_path / "out.csv"
+    assert run("label", indexed, "--template", template, "--method", "cpd", "--out", out) == 0
+    with open(out, newline="") as handle:
+        header = next(csv.reader(handle))
+    assert "Unnamed: 0" not in header, header
+    assert "" in header, header
+
+
+def test_a_name_written_with_probability_0_is_no_candidate(tmp_path, worm, other_worm):
+    """neuron_table.md: cand_k / prob_k are "the k-th most likely names with their
+    probabilities ... (empty / 0 when there are fewer candidates)", and match.top_k leaves a name
+    of probability 0 out ('' / 0). A template with two names: the rows far from both are
+    written `AVAR,0,AVAL,0,,0`, a name beside a written probability of 0 (below 1e-6, rounded
+    down to 0 by label._six_decimals after top_k chose the names). A benchmark counting
+    non-empty cand_k as candidates counts names the answer gives no probability. Expected: a
+    written prob_k of 0 goes with an empty cand_k."""
+    test, _ = _cpd_files(tmp_path, worm, other_worm)
+    df = pd.read_csv(tmp_path / "template.csv", keep_default_na=False)
+    df["label"] = ""
+    df.loc[5, "label"], df.loc[9, "label"] = "AVAL", "AVAR"
+    template = tmp_path / "two_names.csv"
+    df.to_csv(template, index=False)
+    out = tmp_path / "out.csv"
+    assert run("label", test, "--template", template, "--method", "cpd", "--out", out) == 0
+    o = pd.read_csv(out, dtype=str, keep_default_na=False)
+    zero_named = [(j, o.loc[j, f"cand_{k}"]) for j in range(len(o)) for k in (1, 2, 3)
+                  if o.loc[j, f"cand_{k}"] != "" and float(o.loc[j, f"prob_{k}"]) == 0.0]
+    assert not zero_named, f"{len(zero_named)} candidates written with probability 0, e.g. {zero_named[:3]}"
+
+
+def test_an_absurd_top_k_is_one_line_not_a_traceback(tmp_path, worm, other_worm, capsys):
+    """neuron_table.md: "non-zero with a one-line message on stderr for any bad input. All
+    inputs are validated before anything is written". `--top-k 100000000000000000000` passes
+    label_files' only check (top_k >= 1); after the whole registration, match.top_k builds
+    `[""] * (k - kk)` and an OverflowError ("cannot fit 'int' into an index-sized integer")
+    escapes cli.main as a traceback. Expected: exit 2 and one line (e.g. refuse K beyond what
+    can be written, before any work)."""
+    test, template = _cpd_files(tmp_path, worm, other_worm, n_test=3)
+    out = tmp_path / "out.csv"
+    try:
+        code = run("label", test, "--template", template, "--method", "cpd", "--top-k", 10**20, "--out", out)
+    except OverflowError as exc:
+        raise AssertionError(f"traceback instead of one line: OverflowError: {exc}") from None
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err and err[-1].startswith("fdlc: error:"), (code, err)
+    assert not out.exists()
+
+
+def test_out_may_not_replace_the_built_in_atlas(tmp_path, worm, untrained_weights, monkeypatch, capsys):
+    """Without --template, `fdlc label` reads the built-in reference panel, made from the
+    shipped atlas (src/napari_fdlc/data/atlas.csv; the atlas's answer joins every template's
+    too). It is an input as much as the shipped weights, which --out may not replace
+    (test_label_contract.test_out_may_not_replace_the_weights). Expected: `--out` onto the atlas
+    is refused in one line (exit 2) and the atlas is left as it was. Instead the answer replaces
+    it (label._output_paths lists the tests, templates and model files as inputs, not the atlas),
+    and every later call without a template fails or names from a neuron table of answers.
+    The atlas is a copy here (reference.shipped_atlas_path patched), so no real file is harmed."""
+    import shutil
+
+    from napari_fdlc import reference
+
+    atlas = tmp_path / "data" / "atlas.csv"
+    atlas.parent.mkdir()
+    shutil.copy(reference.shipped_atlas_path(), atlas)
+    before = atlas.read_bytes()
+    monkeypatch.setattr(reference, "shipped_atlas_path", lambda: atlas)
+    test = tmp_path / "test.csv"
+    write_table(worm.subset(np.arange(30)), test)
+    code = run("label", test, "--weights", untrained_weights, "--out", atlas)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert atlas.read_bytes() == before, "the atlas was replaced by the answer"
+    assert code == 2 and err and err[-1].startswith("fdlc: error:"), (code, err)

@@ -38,7 +38,7 @@ def test_columns_without_name_or_value_are_not_written_back(tmp_path):
     write_table(back, tmp_path / "b.csv")
     header = (tmp_path / "b.csv").read_text().splitlines()[0].split(",")
     assert header[:4] == ["x_um", "y_um", "z_um", "label"] and "Unnamed: 4" not in header and "Unnamed: 5" not in header, header
-    assert list(back.extra["Unnamed: 6"]) == ["7", ""]
+    assert list(back.extra[""]) == ["7", ""]  # its blank name kept, as written
 
 
 def test_numbers_are_read_to_the_last_digit(tmp_path):

@@ -27,6 +27,9 @@ from .table import COORDS, NeuronTable, read_volume, warn_implausible_scales, wr
 _OUTPUT_COLUMNS = re.compile(r"neuron_index|auto_id|auto_conf|(cand|prob)_\d+")
 
 
+MAX_TOP_K = 1000
+
+
 def _six_decimals(p: np.ndarray) -> np.ndarray:
     """Probabilities to 6 decimals, rounded down, so that a row's written candidates still sum
     to at most 1 (each rounded to nearest, 0.9999906 + 2 × 0.0000047 was written as 1.000001);
@@ -42,8 +45,10 @@ def labelling_frame(test: NeuronTable, result: Labelling, top_k: int = 3) -> pd.
     columns["auto_id"] = result.auto_id
     columns["auto_conf"] = _six_decimals(result.auto_conf)
     for r in range(k):
-        columns[f"cand_{r + 1}"] = [row[r] for row in cand]
-        columns[f"prob_{r + 1}"] = _six_decimals(cand_p[:, r])
+        written = _six_decimals(cand_p[:, r])
+        # a name whose probability is written as 0 is no candidate (empty / 0, as top_k's own)
+        columns[f"cand_{r + 1}"] = [row[r] if p > 0 else "" for row, p in zip(cand, written)]
+        columns[f"prob_{r + 1}"] = written
     # The test's other columns as they were written (text read from a file), not as parsed.
     given = test.text if test.text is not None else test.to_dataframe()
     for c in given.columns:
@@ -95,8 +100,8 @@ def label_files(
     if not tests:
         raise FdlcError("no test table given" + (": list the test tables before --template, which reads every table "
                                                  "after it" if templates else ""))
-    if top_k < 1:
-        raise FdlcError(f"--top-k must be at least 1 (got {top_k})")
+    if not 1 <= top_k <= MAX_TOP_K:  # (the atlas knows ~180 names; 10**20 ran the model, then overflowed)
+        raise FdlcError(f"--top-k must be from 1 to {MAX_TOP_K} (got {top_k})")
     if method not in ("fdlc", "cpd"):
         raise FdlcError(f"unknown --method '{method}' (use fdlc or cpd)")
     if method == "cpd" and not templates:
@@ -123,9 +128,11 @@ def label_files(
     elif not use_atlas and not template_tables:
         warn("--no-atlas is for --template (the built-in panel always joins the atlas's answer): ignored here")
     from .errors import model_files
+    from .reference import shipped_atlas_path
 
-    # The weights (the shipped ones by default) are read too, never written.
-    paths = _output_paths(tests, out, [*tests, *(templates or []), *model_files(weights or shipped_weights())])
+    # The weights (the shipped ones by default) and the shipped atlas are read too, never written.
+    paths = _output_paths(tests, out, [*tests, *(templates or []), *model_files(weights or shipped_weights()),
+                                       shipped_atlas_path()])
     applies = not template_tables and chirality == "auto"
     if shared_handedness and not (applies and len(test_tables) > 1):
         warn("--shared-handedness is for several tests named by the built-in panel with --chirality auto: ignored here")

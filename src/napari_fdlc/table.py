@@ -337,7 +337,14 @@ def _read_csv(text: str, name: str, skiprows: int = 0) -> pd.DataFrame:
     blank_names = {k for k, h in enumerate(header or []) if not h.strip()}
     nameless = [c for k, c in enumerate(df.columns) if (k in blank_names or str(c).startswith("Unnamed: "))
                 and not df[c].fillna("").str.strip().ne("").any()]
-    df = df.drop(columns=nameless)
+    # One with values (the index pandas' own to_csv writes first) keeps its blank name, as written
+    # (the first of several: pandas' names tell the others apart)
+    named_back = {}
+    for k in sorted(blank_names):
+        column = df.columns[k]
+        if column not in nameless and header[k] not in df.columns and header[k] not in named_back.values():
+            named_back[column] = header[k]
+    df = df.drop(columns=nameless).rename(columns=named_back)
     # Rows of blank cells (',,,,') that Excel leaves below a table are no neurons: dropped. One
     # between neurons stays a row (pandas keeps it too: a benchmark's row numbers, neuron_index,
     # must stay the file's), and its empty position is then refused with its line.

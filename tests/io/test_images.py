@@ -812,7 +812,7 @@ def test_a_lazily_read_tiff_that_is_refused_is_closed(tmp_path, monkeypatch, axe
         with pytest.raises(ImageError):
             read_stack(path, axes=axes)
         gc.collect()
-    unclosed = [str(w.message) for w in caught if issubclass(w.category, ResourceWarning) and path.name in str(w.message)]
+    unclosed = [str(w.message) for w in caught if issubclass(w.category, ResourceWarning) and str(path) in str(w.message)]
     assert not unclosed, unclosed
 
 
