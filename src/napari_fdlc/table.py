@@ -575,11 +575,11 @@ def write_neuropal_id(
         df.to_csv(handle, index=False)
 
 
-def read_volume(path: str | os.PathLike, instead: str, names: bool = True) -> NeuronTable:
+def read_volume(path: str | os.PathLike, instead: str, names: bool = True, unique_names: bool = True) -> NeuronTable:
     """:func:`read_table` for a table that must be one volume: a table of several time points
     (a ``t`` column, as ``fdlc segment`` writes for a recording) is refused in one line, before
-    its names are checked for repeats (each time point names a neuron again). ``instead`` says
-    what to give."""
+    its names are checked for repeats (each time point names a neuron again; ``unique_names``
+    False: left to the caller). ``instead`` says what to give."""
     table = read_table(path, names=names, unique_names=False)
     if table.text is not None and "t" in table.text.columns:
         text = table.text["t"].astype(str).str.strip()
@@ -588,4 +588,4 @@ def read_volume(path: str | os.PathLike, instead: str, names: bool = True) -> Ne
         if times > 1:
             raise TableError(f"{table.source}: a recording of {times} time points (a 't' column), taken whole it "
                              f"would mix them; {instead}")
-    return with_unique_names(table) if names else table
+    return with_unique_names(table) if names and unique_names else table

@@ -100,7 +100,7 @@ class TrackSettings:
     # worms, not the benchmark's: 40 volumes at 1× and 3× motion, positions only, geometry alone
     # 91.7 -> 94.8 (5) -> 95.1 % (8), for 15 % more time.
     geometry_iterations: int = 8
-    position_sigma_um: float = 1.0  # same-worm position likelihood fused with the model (0: model alone)
+    position_sigma_um: float = 1.0  # same-worm position likelihood fused (0: model alone; off with placement="model")
     # Which model answers for the volumes placed from the one before: "tracking", the small
     # model trained on exactly that (fdlc_tracking, train.tracking_example), or "full", the
     # identification model. Full searches (the first volume, a lost one) always use the latter.
@@ -181,7 +181,8 @@ class TrackResult:
 # Reading a sequence
 
 def _natural_key(name: str):
-    return [int(s) if s.isdigit() else s.lower() for s in re.split(r"(\d+)", name)]
+    # isdecimal, not isdigit: '²' is a digit that int() refuses (and \d does not split on)
+    return [int(s) if s.isdecimal() else s.lower() for s in re.split(r"(\d+)", name)]
 
 
 _ONE_PER_FILE = "each file of a folder or list of CSVs is one volume: give a table of several time points alone"
@@ -201,12 +202,32 @@ def read_sequence(paths: list[str] | str) -> Sequence:
                            key=lambda p: (_natural_key(p.name), p.name))  # t1 and t01: by name, not by listing
             if not files:
                 raise FdlcError(f"{path}: the folder holds no .csv file")
-            return Sequence([read_volume(f, _ONE_PER_FILE) for f in files], list(range(len(files))), [f.name for f in files])
+            return _files_sequence(files)
         return split_by_time(read_table(path, unique_names=False))  # a name once per time point
     missing = [p for p in paths if Path(p).is_dir()]
     if missing:
         raise FdlcError(f"{missing[0]}: a folder can only be given alone")
-    return Sequence([read_volume(p, _ONE_PER_FILE) for p in paths], list(range(len(paths))), [Path(p).name for p in paths])
+    return _files_sequence([Path(p) for p in paths])
+
+
+def _files_sequence(files: list[Path]) -> Sequence:
+    volumes = [read_volume(f, _ONE_PER_FILE, unique_names=False) for f in files]
+    _unique_names_once(volumes, [f.name for f in files], "file(s)", str(files[0].parent))
+    return Sequence(volumes, list(range(len(files))), [f.name for f in files])
+
+
+def _unique_names_once(volumes: list[NeuronTable], keys: list[str], unit: str, where: str) -> None:
+    """Each volume's repeated names left on none of its rows (as one volume is read), said in
+    one line for the whole sequence, not once per volume."""
+    repeated = {}
+    for volume, key in zip(volumes, keys):
+        names = repeated_names(volume.labels)
+        if names:
+            repeated[key] = names
+            with_unique_names(volume, say=False)
+    if repeated:
+        warn(f"{where}: name(s) {', '.join(sorted(set().union(*repeated.values()))[:8])} occur more than once within "
+             f"{len(repeated)} {unit} (the first {next(iter(repeated))}); those rows are read as unnamed")
 
 
 def split_by_time(table: NeuronTable) -> Sequence:
@@ -228,21 +249,14 @@ def split_by_time(table: NeuronTable) -> Sequence:
     values, group = np.unique(t, return_inverse=True)
     group = np.asarray(group).ravel()
     rows_by_time = np.split(np.argsort(group, kind="stable"), np.cumsum(np.bincount(group, minlength=len(values)))[:-1])
-    volumes, times, repeated = [], [], {}
+    volumes, times = [], []
     for v, rows in zip(values, rows_by_time):
         sub = table.subset(rows)
         sub.extra = sub.extra.drop(columns=["t"])
         sub.source = f"{name} (t={_time_value(v)})"
-        names = repeated_names(sub.labels)
-        if names:  # said once below, not once per time point
-            repeated[_time_value(v)] = names
-            with_unique_names(sub, say=False)
         volumes.append(sub)
         times.append(_time_value(v))
-    if repeated:
-        first = next(iter(repeated))
-        warn(f"{name}: name(s) {', '.join(sorted(set().union(*repeated.values()))[:8])} occur more than once within "
-             f"{len(repeated)} time point(s) (the first t={first}); those rows are read as unnamed")
+    _unique_names_once(volumes, [f"t={t}" for t in times], "time point(s)", name)
     return Sequence(volumes, times, [""] * len(volumes))
 
 
@@ -312,7 +326,9 @@ def _finish(identifier, ref: _Reference, volume: NeuronTable, out: tuple, s: Tra
     rate, jump_rate = _match_rates(lp)
     # log likelihood ratios on the real columns, fused with the calibrated answer in one renormalisation
     evidence = identifier._colour_evidence(ref.table, volume, model_saw_colour=saw) if s.use_colour else None
-    if s.position_sigma_um > 0:
+    # with placement="model" the placement is the last chunk's (up to `chunk` volumes old):
+    # a likelihood centred on it pulled neurons onto wrong partners (36 % tracked at 1x motion)
+    if s.position_sigma_um > 0 and s.placement != "model":
         near = position_evidence(placed, ref.xyz, s.position_sigma_um)
         evidence = near if evidence is None else np.add(evidence, near, out=near)
     lp = identifier._calibrate(lp, evidence)
@@ -483,7 +499,9 @@ def _match_chunk(identifier, follower, ref: _Reference, chunk: list[NeuronTable]
             found[k] = _finish(follower, ref, chunk[k], out, s, fit=more or k == last)
     for f, flag in zip(found, searched):
         f["searched"] = flag
-    if s.placement == "model" or not rest:
+    # the next chunk chains from the warp this one's chain would go on with: the first volume's
+    # unrefined one when it is the chunk's only volume placed, as within one chunk
+    if s.placement == "model" or (not rest and s.search == "full"):
         ref.warp = found[last]["warp"]
     else:
         ref.warp = chain

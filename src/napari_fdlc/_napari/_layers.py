@@ -369,6 +369,13 @@ def review_features(session) -> pd.DataFrame:
     return df
 
 
+def review_defaults(features: pd.DataFrame) -> dict:
+    """What a point added to the result layer holds: a new neuron, no session row. Where no
+    widget follows the layer (restored, the dock closed) napari copied the last row's name and
+    the user's decision on it (and set again with the features, napari's own come back)."""
+    return {**{c: _blank(features[c]) for c in features.columns}, "neuron": -1}
+
+
 def review_colours(session) -> np.ndarray:
     """(N, 4) ring colours: status for user decisions, yellow/grey for automatic names."""
     shown = session.auto_shown()
@@ -382,11 +389,13 @@ def review_colours(session) -> np.ndarray:
 def review_points(session, name: str, metadata: dict | None = None) -> tuple:
     """Layer data tuple of the result layer for a review session."""
     coords, scale = points_coordinates(session.table.xyz, session.voxel_size_zyx)
+    features = review_features(session)
     kwargs = {
         "name": name,
         "scale": scale,
         "size": point_size(scale),
-        "features": review_features(session),
+        "features": features,
+        "feature_defaults": review_defaults(features),
         "face_color": "transparent",
         "border_color": review_colours(session),
         "border_width": 0.14,

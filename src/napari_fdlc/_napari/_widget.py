@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
+import pandas as pd
 from qtpy.QtCore import QEvent, QObject, Qt, QTimer, Signal
 from qtpy.QtGui import QColor
 from qtpy.QtWidgets import (
@@ -86,6 +87,7 @@ from ._layers import (
     point_size,
     points_coordinates,
     review_colours,
+    review_defaults,
     review_features,
     review_points,
     stack_from_layers,
@@ -828,7 +830,7 @@ class AutoLabelWidget(QWidget):
             voxel_without_image = points_scale
         own_decisions = self.session.decisions() if own else None
         # snapshots: the worker thread never reads a session the user may be editing
-        previous_snapshot = (previous.table.xyz.copy(), previous.decisions(), previous.by_hand) if previous is not None else None
+        previous_snapshot = (previous.table.xyz.copy(), previous.decisions()) if previous is not None else None
         signals, warming = self._signals, self._warming
 
         def work():
@@ -855,19 +857,11 @@ class AutoLabelWidget(QWidget):
             if len(table) == 0:
                 raise FdlcError("no nuclei found: check the W channel and the nucleus diameter")
             carried = dict(decisions)
-            lost = missing = 0  # earlier decisions, and neurons added or moved by hand, the new detection lacks
+            lost = 0  # earlier decisions the new detection lacks
             if previous_snapshot is not None and previous_snapshot[1]:
-                from_previous = carry_decisions(previous_snapshot[:2], table.xyz)
+                from_previous = carry_decisions(previous_snapshot, table.xyz)
                 lost = len(previous_snapshot[1]) - len(from_previous)
                 carried.update(from_previous)
-            if previous_snapshot is not None and previous_snapshot[2].any() and given_table is None:
-                from scipy.spatial import cKDTree
-
-                # a detected neuron the new detection lacks is the new detection's answer (another
-                # diameter, say); one the user added or moved is work lost
-                hand_made = previous_snapshot[0][previous_snapshot[2]]
-                gap, _ = cKDTree(table.xyz).query(hand_made, distance_upper_bound=np.nextafter(1.5, 2))
-                missing = int(np.sum(~np.isfinite(gap)))
             if own_decisions is not None:
                 carried = own_decisions
             fixed = {i: d.name for i, d in carried.items()}
@@ -877,10 +871,10 @@ class AutoLabelWidget(QWidget):
             labelling = label_neurons(table, templates, use_colour=use_colour, fixed=fixed or None,
                                       identifier=_with_chirality(identifier, chirality))
             signals.progress.emit(1.0, "done")
-            return stack, table, labelling, carried, lost, missing, implausible_scale(table)
+            return stack, table, labelling, carried, lost, implausible_scale(table)
 
         def done(result):
-            stack, table, labelling, carried, lost, missing, scale_warning = result
+            stack, table, labelling, carried, lost, scale_warning = result
             if stack is not None:
                 self._stack = stack
             voxel = stack.voxel_size_zyx if stack is not None else voxel_without_image
@@ -894,13 +888,18 @@ class AutoLabelWidget(QWidget):
                 self.session.settings.update(settings)
                 self.session.set_labelling(labelling, "auto-label", fixed_rows=own_decisions or ())
             else:
-                if self.session is not None and self.session.image == image_key:
-                    # decisions made while the job ran are kept too
-                    during = carry_decisions(self.session, table.xyz)
-                    if self.session is previous:  # the snapshot's session: its decisions as they are now
-                        lost, carried = len(self.session.decisions()) - len(during), {**decisions, **during}
+                # The image's session as it is now: decisions made while the job ran are kept
+                # too, also with its layer deleted meanwhile (then the snapshot's session)
+                latest = self.session if self.session is not None and self.session.image == image_key else previous
+                missing = 0
+                if latest is not None:
+                    during = carry_decisions(latest, table.xyz)
+                    if latest is previous:  # the snapshot's session: its decisions as they are now
+                        lost, carried = len(latest.decisions()) - len(during), {**decisions, **during}
                     else:
-                        lost, carried = max(lost, len(self.session.decisions()) - len(during)), {**carried, **during}
+                        lost, carried = max(lost, len(latest.decisions()) - len(during)), {**carried, **during}
+                    if given_table is None:  # neurons added or moved by hand, before or while the job ran
+                        missing = _lacking(latest.table.xyz[latest.by_hand], table.xyz)
                 self._new_session(table, labelling, carried, image_key, voxel, stack, settings, source, base_name,
                                   lost=lost, unreadable=unreadable, missing=missing, by_hand=given_table is not None)
             self._status(self._done_message(len(table), labelling))
@@ -1113,11 +1112,12 @@ class AutoLabelWidget(QWidget):
         session = self._open_sessions.get(str(path))
         if session is None:  # (one left with no neurons is still the one with the undo history)
             session = ReviewSession.load(path)
-        self._link(session, layer)
+        self._link(session, layer, catch_up=True)
         self._status(f"restored {Path(path).name}")
 
-    def _link(self, session: ReviewSession, layer=None) -> None:
-        """Show ``session`` in ``layer`` (a new Points layer when None)."""
+    def _link(self, session: ReviewSession, layer=None, catch_up: bool = False) -> None:
+        """Show ``session`` in ``layer`` (a new Points layer when None). ``catch_up``: ``layer``
+        is this session's own, perhaps edited while no widget followed it (:meth:`_catch_up`)."""
         if self.session is not None:
             self.session.disconnect(self._on_session)
         if self.layer is not None:
@@ -1138,9 +1138,14 @@ class AutoLabelWidget(QWidget):
         self.layer = layer
         session.connect(self._on_session)
         layer.events.data.connect(self._on_layer_data)
-        layer.events.name.connect(self._on_layer_renamed)
+        layer.events.name.connect(_record_layer_name)  # stays connected: renamed with the dock closed too
         layer.selected_data.events.items_changed.connect(self._on_selection)
         self._bind_keys(layer)
+        if catch_up:
+            self._catch_up()
+            if session.settings.get("layer_name") != layer.name:  # renamed before any widget followed it
+                session.settings["layer_name"] = layer.name
+                session.autosave()
         self._refresh_layer(structure=True)
         with self._guarded():
             self.viewer.layers.selection.active = layer
@@ -1152,7 +1157,7 @@ class AutoLabelWidget(QWidget):
         self._refresh_all()
 
     def _disconnect_layer(self, layer) -> None:
-        for signal, slot in ((layer.events.data, self._on_layer_data), (layer.events.name, self._on_layer_renamed),
+        for signal, slot in ((layer.events.data, self._on_layer_data),
                              (layer.selected_data.events.items_changed, self._on_selection)):
             try:
                 signal.disconnect(slot)
@@ -1205,18 +1210,13 @@ class AutoLabelWidget(QWidget):
                     layer.selected_data = set()
                     layer.data = coords
             layer.features = review_features(session)
+            layer.feature_defaults = review_defaults(layer.features)
             layer.border_color = review_colours(session)
             if self.hide_check.isChecked():
                 layer.shown = np.asarray(layer.features["shown"], dtype=bool)
             else:
                 layer.shown = np.ones(len(session), dtype=bool)
             layer.refresh_text()
-
-    def _on_layer_renamed(self, *_) -> None:
-        """The neuron-ID layer renamed: reopening the image brings it back under that name."""
-        if self.session is not None and self.layer is not None and not self._guard:
-            self.session.settings["layer_name"] = self.layer.name
-            self.session.autosave()
 
     def _on_layer_data(self, event) -> None:
         """Points added, removed or moved by hand: the session follows (undoable)."""
@@ -1231,12 +1231,8 @@ class AutoLabelWidget(QWidget):
             self._report_error(exc)
 
     def _sync_structure(self, action: str, indices) -> None:
-        from ._layers import layer_xyz_um
-
-        session = self.session
-        old = session.table
-        xyz = layer_xyz_um(self.layer)
-        n_old, n_new = len(old), len(xyz)
+        n_old, n_new = len(self.session), len(self.layer.data)
+        moved = []
         if action == "removed" or n_new < n_old:
             removed = {int(i) for i in np.atleast_1d(indices)} if n_old - n_new == len(np.atleast_1d(indices)) else None
             if removed is None:
@@ -1249,6 +1245,47 @@ class AutoLabelWidget(QWidget):
         else:
             kept = list(range(n_old))
             description = "move neuron(s)"
+            moved = [int(i) for i in np.atleast_1d(indices) if 0 <= int(i) < n_new] if indices is not None else []
+        self._take_layer(kept, moved, description)
+
+    def _catch_up(self) -> None:
+        """Points added, removed or moved in the session's own layer while no widget followed it
+        (the dock closed, another worm under review): the session takes them now, as one
+        undoable edit. They were overwritten by the session's table, and in no file. Each point
+        carries its session row (feature ``neuron``; a point added has none)."""
+        layer, session = self.layer, self.session
+        coords, scale = points_coordinates(session.table.xyz, session.voxel_size_zyx)
+        data = np.asarray(layer.data, dtype=float)
+        if "neuron" not in layer.features.columns or data.ndim != 2 or data.shape[1] != 3 or \
+                not np.allclose(np.asarray(layer.scale, dtype=float)[-3:], scale):
+            return  # not the layer as this session left it: shown afresh
+        rows = pd.to_numeric(layer.features["neuron"], errors="coerce").to_numpy(dtype=float)
+        kept, seen = [], set()
+        for v in rows:
+            o = int(v) if np.isfinite(v) and v == int(v) and 0 <= v < len(session) and int(v) not in seen else None
+            seen.add(o)
+            kept.append(o)
+        moved = [j for j, o in enumerate(kept) if o is not None and not np.allclose(data[j], coords[o])]
+        if kept == list(range(len(session))) and not moved:
+            return
+        added, removed = kept.count(None), len(session) - len(seen - {None})
+        description = ", ".join(f"{verb} {n} neuron(s)" for verb, n in (("add", added), ("remove", removed), ("move", len(moved))) if n)
+        try:
+            self._take_layer(kept, moved, description)
+        except FdlcError as exc:
+            self._report_error(exc)
+        else:
+            self._notify_info(f"the edits made in '{layer.name}' while it was not followed are kept: {description}")
+
+    def _take_layer(self, kept: list, moved: list[int], description: str) -> None:
+        """The session takes the layer's points: ``kept[j]`` the session row of point j (None:
+        a neuron added), ``moved`` the points dragged."""
+        from ._layers import layer_xyz_um
+
+        session = self.session
+        old = session.table
+        xyz = layer_xyz_um(self.layer)
+        n_new = len(xyz)
         colours = {}
         for c, v in old.colours_as_read().items():
             col = np.full(n_new, np.nan)
@@ -1259,10 +1296,8 @@ class AutoLabelWidget(QWidget):
         new_rows = [j for j, o in enumerate(kept) if o is None]
         if new_rows:
             self._fill_colours(colours, xyz, kept, new_rows)
-        if description == "move neuron(s)":  # a point dragged onto another nucleus takes the colour there
-            moved = [int(i) for i in np.atleast_1d(indices) if 0 <= int(i) < n_new] if indices is not None else []
-            if moved:
-                self._fill_colours(colours, xyz, kept, moved)
+        if moved:  # a point dragged onto another nucleus takes the colour there
+            self._fill_colours(colours, xyz, kept, moved)
         extra = old.extra.iloc[[o for o in kept if o is not None]].reset_index(drop=True) if all(o is not None for o in kept) else None
         if extra is None:
             extra = old.extra.reindex([o if o is not None else -1 for o in kept]).reset_index(drop=True)
@@ -1658,6 +1693,28 @@ def _saved_session(image_key: str) -> tuple[ReviewSession | None, str | None]:
 # widgets docked in it: a session taken up again keeps its undo history, also after the dock
 # was closed and opened again (gui.md).
 _SESSIONS_SHOWN: dict[int, dict[str, ReviewSession]] = {}
+
+
+def _lacking(hand_made: np.ndarray, detected: np.ndarray) -> int:
+    """How many neurons the user added or moved (µm) a new detection lacks (none within 1.5 µm):
+    work lost. A detected neuron the new detection lacks is its answer (another diameter, say)."""
+    if not len(hand_made):
+        return 0
+    from scipy.spatial import cKDTree
+
+    gap, _ = cKDTree(detected).query(hand_made, distance_upper_bound=np.nextafter(1.5, 2))
+    return int(np.sum(~np.isfinite(gap)))
+
+
+def _record_layer_name(event) -> None:
+    """A neuron-ID layer renamed, a widget following it or not (the dock closed, another worm
+    under review): reopening the image brings it back under that name."""
+    layer = event.source
+    path = ((getattr(layer, "metadata", None) or {}).get(META_KEY) or {}).get("session")
+    session = next((shown[path] for shown in _SESSIONS_SHOWN.values() if path in shown), None) if path else None
+    if session is not None and session.settings.get("layer_name") != layer.name:
+        session.settings["layer_name"] = layer.name
+        session.autosave()
 
 
 def _sessions_shown_in(viewer) -> dict[str, ReviewSession]:
