@@ -972,7 +972,8 @@ class ReviewSession:
             else:
                 s = self._s
                 t = s.table
-                user = NeuronTable(t.xyz, t.colours_as_read(), labels=s.user_id, label_conf=np.nan_to_num(s.user_conf), source=t.source)
+                user = NeuronTable(t.xyz, t.colours_as_read(), labels=s.user_id, label_conf=np.nan_to_num(s.user_conf),
+                                   extra=t.extra, source=t.source)  # (GFP and emphasis of a NeuroPAL_ID table read)
                 # NeuroPAL_ID shows the Auto ID of a neuron without a User ID: only where the widget
                 # shows it (not below the threshold, not a name a decision took elsewhere).
                 shown = self.auto_shown()

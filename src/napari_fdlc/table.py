@@ -535,9 +535,14 @@ def write_neuropal_id(
     """Write a NeuroPAL_ID "Save ID Info" CSV (1-based internal voxel coordinates)."""
     n = len(table)
     rows = {h: [""] * n for h in NEUROPAL_ID_HEADER if h}
+    rows["Emphasized?"] = ["0"] * n
+    # what a NeuroPAL_ID table read brought along (GFP, emphasis, its Auto ID), unless given anew
+    # below; voxel coordinates only from voxel_size_zyx (a moved neuron's would be stale)
+    for h in rows:
+        if h in table.extra.columns and h not in PIXEL_COLUMNS:
+            rows[h] = ["" if pd.isna(v) else str(v) for v in table.extra[h]]
     rows["User ID"] = list(table.labels)
     rows["User Confidence"] = [f"{c:g}" if s else "0" for s, c in zip(table.labels, table.label_conf)]
-    rows["Emphasized?"] = ["0"] * n
     if auto_id is not None:
         rows["Auto ID"] = [str(a or "") for a in _per_neuron(auto_id, n, "automatic names", object)]
         if auto_conf is not None:  # an Auto ID without its confidence says none

@@ -14,6 +14,10 @@ from napari_fdlc.io import images
 from napari_fdlc.io.images import Stack, read_series, read_stack, write_tiff
 from napari_fdlc.io.nwb import write_nwb
 from napari_fdlc.table import NeuronTable, read_table, write_table
+import pandas as pd
+from napari_fdlc.match import make_labelling
+from napari_fdlc.review import ReviewSession
+from napari_fdlc.table import NEUROPAL_ID_HEADER, write_neuropal_id
 
 VOXEL = {"PhysicalSizeX": 0.25, "PhysicalSizeY": 0.25, "PhysicalSizeZ": 1.5}
 
@@ -321,3 +325,63 @@ def test_read_nwb_neurons_voxel_size_reads_colours_at_the_same_voxels(tmp_path):
     np.testing.assert_allclose(given.xyz, own.xyz * 2)  # the positions follow the size given
     for c in ("R", "G", "B"):
         np.testing.assert_allclose(given.colours[c], own.colours[c], atol=1e-6)
+
+
+_PREAMBLE = ("Version,1.0\nGFP,0\nZ-Score Means,100,200,300,400\nZ-Score SDs,10,20,30,40\n"
+             "Neuron Count,3\nComment,x\n\n")
+
+
+_ROWS = [
+    # user, conf, emph, auto, aconf, x, y, z, ix, iy, iz, R, G, B, W, GFP
+    ("AVAL", 1, 1, "AVAL", 0.9, 1.25, 2.5, 3.0, 6, 11, 4, 1.5, 0.25, -0.75, 2.0, 12.5),
+    ("AVAR", 0.5, 0, "AVAR", 0.8, 4.5, 5.5, 6.0, 19, 23, 7, 0.5, 1.75, 0.25, 1.0, 11.0),
+    ("", 0, 0, "RIAL", 0.4, 7.5, 8.5, 9.0, 31, 35, 10, 2.5, 0.75, 1.25, 0.5, 10.0),
+]
+
+
+def _neuropal_id_file(path):
+    lines = [",".join(NEUROPAL_ID_HEADER)]
+    for u, c, e, a, ac, x, y, z, ix, iy, iz, r, g, b, w, gfp in _ROWS:
+        lines.append(f"{u},{c},{e},{a},{ac},,{x},{y},{z},,{ix},{iy},{iz},,{r},{g},{b},{w},,{gfp},{gfp},{gfp}")
+    path.write_text(_PREAMBLE + "\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def _read_npid(path) -> pd.DataFrame:
+    return pd.read_csv(path, skiprows=6, dtype=str, keep_default_na=False)
+
+
+@pytest.fixture(autouse=True)
+def _session_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("FDLC_SESSION_DIR", str(tmp_path / "user-data"))
+
+
+def test_a_neuropal_id_export_read_and_written_back_keeps_gfp_and_emphasis(tmp_path):
+    """NeuroPAL_ID's own columns that a table read from its export carries (``extra``:
+    'Emphasized?', 'Estimated GFP', 'Max GFP', 'Normalized GFP') should be written back by
+    write_neuropal_id into the same columns. Instead the GFP columns are written empty and
+    'Emphasized?' is 0 on every neuron: the reporter measurements are lost on a read/write."""
+    table = read_table(_neuropal_id_file(tmp_path / "npid.csv"))
+    out = tmp_path / "back.csv"
+    write_neuropal_id(table, out)
+    back = _read_npid(out)
+    assert back["Emphasized?"].tolist() == ["1", "0", "0"]
+    for column in ("Estimated GFP", "Max GFP", "Normalized GFP"):
+        assert back[column].astype(float).tolist() == pytest.approx([r[15] for r in _ROWS]), column
+
+
+def test_review_neuropal_id_export_of_a_neuropal_id_table_keeps_its_gfp(tmp_path):
+    """A NeuroPAL_ID export reviewed (its table the session's neurons, as Auto-label on a
+    NeuroPAL_ID CSV opened as Points does) and exported again as NeuroPAL_ID should keep each
+    neuron's GFP readings (its fdlc export keeps them, as 'Estimated GFP' ...). Instead
+    ReviewSession.export builds a NeuronTable of positions, colours and names only (no extra
+    columns) for write_neuropal_id: 'Estimated GFP', 'Max GFP', 'Normalized GFP' come out empty."""
+    table = read_table(_neuropal_id_file(tmp_path / "npid.csv"))
+    labelling = make_labelling(["AVAL", "AVAR", "RIAL"], np.array([[0.9, 0.05, 0.05], [0.1, 0.8, 0.1], [0.1, 0.1, 0.8]]))
+    session = ReviewSession(table, labelling, voxel_size_zyx=(1.0, 0.25, 0.25))
+    session.accept(0)
+    fdlc = pd.read_csv(session.export(tmp_path / "ids.csv"), dtype=str, keep_default_na=False)
+    assert fdlc["Estimated GFP"].astype(float).tolist() == [12.5, 11.0, 10.0]  # kept in our layout
+    back = _read_npid(session.export(tmp_path / "again_npid.csv", format="neuropal_id"))
+    written = back["Estimated GFP"].tolist()
+    assert written != ["", "", ""] and [float(v) for v in written] == [12.5, 11.0, 10.0], f"Estimated GFP written {written}"
