@@ -20,6 +20,7 @@ from napari_fdlc.io import images
 from napari_fdlc.io.images import Stack, write_tiff
 from napari_fdlc.table import NeuronTable, write_table
 from napari_fdlc.track import join_by_time
+from napari_fdlc.render import random_worm, render_stack
 
 
 def run(*args):
@@ -294,3 +295,35 @@ def test_a_test_whose_neurons_all_lie_at_one_point_is_refused(tmp_path, capsys):
     rc = run("label", test, "--no-color", "--out", out)
     err = capsys.readouterr().err
     assert rc == 2 and not out.exists(), (rc, err)
+
+
+@pytest.fixture(scope="module")
+def two_stacks(tmp_path_factory):
+    """Two small rendered stacks of one worm (OME-TIFF, one volume each): time points 0 and 1."""
+    folder = tmp_path_factory.mktemp("stacks")
+    worm = random_worm(20, size_um=(24, 10, 8), min_spacing_um=2.6, seed=5)
+    paths = []
+    for t in range(2):
+        stack, _ = render_stack(worm, seed=1 + t, voxel_size_zyx=(1.5, 0.5, 0.5), gut=False)
+        path = folder / f"t{t}.ome.tif"
+        write_tiff(path, stack)
+        paths.append(path)
+    return paths
+
+
+def test_track_several_image_files_is_not_called_a_table_sequence(tmp_path, two_stacks, capsys):
+    """``fdlc track t0.ome.tif t1.ome.tif --voxel-size ...``: one stack file per time point, a
+    common layout. Expected: one line saying that image input is one recording file (or to
+    segment the stacks first with fdlc segment), without claiming the segmentation options are
+    ignored "with a table sequence" (the inputs are images). Instead _cli_track.run takes any
+    input other than a single image for a table sequence: it warns "--voxel-size: for an image
+    recording (segmented first); ignored with a table sequence" and then fails with
+    "t0.ome.tif: not a UTF-8 text CSV file", which says nothing about images."""
+    out = tmp_path / "tracks.csv"
+    code = main(["track", *map(str, two_stacks), "--method", "geometry", "--voxel-size", "1.5", "0.5", "0.5",
+                 "--quiet", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and not out.exists()
+    assert "table sequence" not in err, err
+    assert "UTF-8" not in err, err
+    assert any(word in err for word in ("image", "recording", "fdlc segment")), err
