@@ -43,7 +43,8 @@ import pandas as pd
 
 from .errors import FdlcError, atomic_write, warn
 from .match import Labelling
-from .table import COLOUR_CHANNELS, COORDS, UNSURE_CONF, NeuronTable, parse_name, write_neuropal_id, write_table
+from .table import (COLOUR_CHANNELS, COORDS, PIXEL_COLUMNS, UNSURE_CONF, NeuronTable, parse_name, write_neuropal_id,
+                    write_table)
 
 STATUSES = ("auto", "accepted", "corrected", "unsure")
 K = 3  # candidates kept per neuron
@@ -944,8 +945,8 @@ class ReviewSession:
             df["x_px"], df["y_px"], df["z_px"] = t.xyz[:, 0] / x, t.xyz[:, 1] / y, t.xyz[:, 2] / z
         else:
             df["x_px"] = df["y_px"] = df["z_px"] = np.nan
-        for c in t.extra.columns:
-            if c not in df.columns and c not in REVIEW_COLUMNS:
+        for c in t.extra.columns:  # voxel coordinates written anew above (a moved neuron's were stale)
+            if c not in df.columns and c not in REVIEW_COLUMNS and c not in PIXEL_COLUMNS:
                 df[c] = t.extra[c].to_numpy()
         return df
 

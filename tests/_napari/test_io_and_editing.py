@@ -1421,3 +1421,15 @@ def test_a_point_added_to_a_restored_neuron_id_layer_is_saved_without_another_ne
     df = pd.read_csv(out, keep_default_na=False)
     assert df["user_id"].iloc[-1] == "", f"the added neuron carries the name {df['user_id'].iloc[-1]!r}"
     assert read_table(out).labels[last] == "AVAL", "the user's decision is lost from the saved file"
+
+
+def test_the_writer_leaves_out_neuropal_id_voxel_coordinates_when_it_writes_its_own(tmp_path):
+    """A scaled layer is saved with x_px, y_px, z_px written anew from its points; NeuroPAL_ID's
+    'Internal X (px)' features (of the position when read) are left out: a point moved since
+    was saved with the old ones beside its new position."""
+    data = np.array([[2.0, 10.0, 20.0], [3.0, 12.0, 25.0]])
+    feats = pd.DataFrame({"label": ["AVAL", "AVAR"], "Internal X (px)": ["1", "2"], "Internal Z (slice)": ["1", "2"]})
+    [out] = write_neuron_csv(str(tmp_path / "saved.csv"), data, {"scale": (1.5, 0.25, 0.25), "features": feats})
+    df = pd.read_csv(out, keep_default_na=False)
+    assert not {"Internal X (px)", "Internal Z (slice)"} & set(df.columns), list(df.columns)
+    assert list(df["x_px"]) == [20.0, 25.0]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import uuid
 
 import numpy as np
+import pandas as pd
 import pytest
 import tifffile
 
@@ -13,11 +14,9 @@ from napari_fdlc.errors import FdlcError
 from napari_fdlc.io import images
 from napari_fdlc.io.images import Stack, read_series, read_stack, write_tiff
 from napari_fdlc.io.nwb import write_nwb
-from napari_fdlc.table import NeuronTable, read_table, write_table
-import pandas as pd
 from napari_fdlc.match import make_labelling
 from napari_fdlc.review import ReviewSession
-from napari_fdlc.table import NEUROPAL_ID_HEADER, write_neuropal_id
+from napari_fdlc.table import NEUROPAL_ID_HEADER, NeuronTable, read_table, write_neuropal_id, write_table
 
 VOXEL = {"PhysicalSizeX": 0.25, "PhysicalSizeY": 0.25, "PhysicalSizeZ": 1.5}
 
@@ -385,3 +384,18 @@ def test_review_neuropal_id_export_of_a_neuropal_id_table_keeps_its_gfp(tmp_path
     back = _read_npid(session.export(tmp_path / "again_npid.csv", format="neuropal_id"))
     written = back["Estimated GFP"].tolist()
     assert written != ["", "", ""] and [float(v) for v in written] == [12.5, 11.0, 10.0], f"Estimated GFP written {written}"
+
+
+def test_a_moved_neuron_of_a_neuropal_id_table_is_exported_without_its_old_voxel_coordinates(tmp_path):
+    """A session of a NeuroPAL_ID table with a neuron moved: its export writes x_px, y_px, z_px
+    anew and leaves NeuroPAL_ID's 'Internal X (px)' out. Those were copied unchanged beside the
+    new position: the file contradicted itself."""
+    table = read_table(_neuropal_id_file(tmp_path / "npid.csv"))
+    session = ReviewSession(table, voxel_size_zyx=(1.5, 0.25, 0.25))
+    xyz = table.xyz.copy()
+    xyz[0, 0] += 10.0
+    moved = NeuronTable(xyz, table.colours_as_read(), extra=table.extra, source=table.source)
+    session.replace_table(moved, list(range(len(table))), "move")
+    df = session.to_dataframe()
+    assert not {"Internal X (px)", "Internal Y (px)", "Internal Z (slice)"} & set(df.columns), list(df.columns)
+    assert df["x_px"][0] == pytest.approx(moved.xyz[0, 0] / 0.25)

@@ -284,7 +284,7 @@ def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     the layer's features, and ``x_px, y_px, z_px`` voxel coordinates when the layer is scaled).
     Points of a (t, z, y, x) layer at several time points get a ``t`` column (a sequence table,
     as ``fdlc track`` reads), unless a ``t`` feature already says their time."""
-    from ..table import COLOUR_CHANNELS, write_table
+    from ..table import COLOUR_CHANNELS, PIXEL_COLUMNS, write_table
 
     data = np.asarray(data, dtype=float)
     if data.ndim != 2 or data.shape[1] < 3:
@@ -327,7 +327,8 @@ def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     # the review layer's own columns ('neuron', 'shown'), and voxel coordinates written anew
     # below; a table's own columns of those names are kept
     review = "session" in (((attributes.get("metadata") or {}).get(META_KEY)) or {})
-    left_out = ({"neuron", "shown"} if review else set()) | ({"x_px", "y_px", "z_px"} if scaled else set())
+    # (NeuroPAL_ID's 'Internal X (px)' too: with x_px written anew, a moved point's would be stale)
+    left_out = ({"neuron", "shown"} if review else set()) | (set(PIXEL_COLUMNS) if scaled else set())
     for c in feats.columns:
         if c not in df.columns and c not in left_out:
             df[c] = feats[c].to_numpy()
