@@ -556,18 +556,24 @@ def write_neuropal_id(
             zip(["Internal X (px)", "Internal Y (px)", "Internal Z (slice)"], [x, y, z])
         ):
             rows[col] = [f"{v / size + 1:.3f}" for v in table.xyz[:, axis]]
-    for ours, theirs in [("R", "Z-Scored Red"), ("G", "Z-Scored Green"), ("B", "Z-Scored Blue"), ("W", "Z-Scored White")]:
+    # each colour z-scored over the neurons; the preamble says with which mean and SD (a
+    # NeuroPAL_ID table read is z-scored again: its values change, the preamble undoes it)
+    means, sds = [0.0] * 4, [1.0] * 4
+    for k, (ours, theirs) in enumerate([("R", "Z-Scored Red"), ("G", "Z-Scored Green"), ("B", "Z-Scored Blue"),
+                                         ("W", "Z-Scored White")]):
         if ours in table.colours:
             v = table.colours_as_read()[ours]
             finite = np.isfinite(v)  # a neuron without a reading leaves its cell empty, not the column NaN
-            spread = v[finite].std() if finite.any() else 0.0
-            z = (v - (v[finite].mean() if finite.any() else 0.0)) / (spread or 1.0)
+            means[k] = float(v[finite].mean()) if finite.any() else 0.0
+            sds[k] = float(v[finite].std()) if finite.any() else 0.0
+            sds[k] = sds[k] or 1.0
+            z = (v - means[k]) / sds[k]
             rows[theirs] = [f"{x:.4f}" if np.isfinite(x) else "" for x in z]
     preamble = [
         "Version,napari-fdlc",
         "GFP,0",
-        "Z-Score Means,0,0,0,0",
-        "Z-Score SDs,1,1,1,1",
+        "Z-Score Means," + ",".join(f"{m:.6g}" for m in means),
+        "Z-Score SDs," + ",".join(f"{d:.6g}" for d in sds),
         "Neuron Count," + str(n),
         "Comment,written by napari-fdlc",
         "",

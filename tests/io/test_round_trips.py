@@ -399,3 +399,20 @@ def test_a_moved_neuron_of_a_neuropal_id_table_is_exported_without_its_old_voxel
     df = session.to_dataframe()
     assert not {"Internal X (px)", "Internal Y (px)", "Internal Z (slice)"} & set(df.columns), list(df.columns)
     assert df["x_px"][0] == pytest.approx(moved.xyz[0, 0] / 0.25)
+
+
+def test_a_neuropal_id_export_says_the_mean_and_sd_its_colours_were_z_scored_with(tmp_path):
+    """The colours are z-scored over the neurons: the preamble's 'Z-Score Means' and 'SDs' are
+    the mean and SD used, so the values written can be undone to those given. It said 0 and 1,
+    which they were not (a NeuroPAL_ID table read and exported came back with other colours and
+    no way back)."""
+    table = read_table(_neuropal_id_file(tmp_path / "npid.csv"))
+    write_neuropal_id(table, tmp_path / "out.csv")
+    lines = (tmp_path / "out.csv").read_text().splitlines()
+    means = [float(v) for v in lines[2].split(",")[1:]]
+    sds = [float(v) for v in lines[3].split(",")[1:]]
+    out = _read_npid(tmp_path / "out.csv")
+    for k, (ours, theirs) in enumerate([("R", "Z-Scored Red"), ("G", "Z-Scored Green"), ("B", "Z-Scored Blue"),
+                                         ("W", "Z-Scored White")]):
+        undone = out[theirs].astype(float).to_numpy() * sds[k] + means[k]
+        np.testing.assert_allclose(undone, table.colours[ours], atol=1e-3 * max(1.0, sds[k]))
