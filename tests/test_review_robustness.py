@@ -28,6 +28,7 @@ from napari_fdlc.review import (
     set_aside,
 )
 from napari_fdlc.table import NeuronTable, UNSURE_CONF, read_table
+from napari_fdlc.review import decisions_from_frame
 
 NAMES = ["AVAL", "AVAR", "RMDL", "RMDR", "SMDVL"]
 VOXEL = (1.0, 0.25, 0.25)
@@ -317,14 +318,14 @@ TOO_LONG = "w" * 300
     [
         '"extra": [1, 2]',
         '"extra": "radius_um"',
-        '"order": [1e400, 1, 2, 3]',
     ],
-    ids=["extra-list", "extra-string", "order-infinite"],
+    ids=["extra-list", "extra-string"],
 )
 def test_a_damaged_session_file_is_one_fdlc_error_line(tmp_path, damage):
     """A damaged session file is one FdlcError line (the widget then sets it aside, docs/gui.md
-    §5). An ``extra`` that is not an object (AttributeError) and an infinite number in ``order``
-    (OverflowError) escaped as tracebacks, and reopening the image failed."""
+    §5). An ``extra`` that is not an object (AttributeError) escaped as a traceback, and
+    reopening the image failed. (An ``order`` with an infinite number is ignored since session
+    36, as any order of the wrong kind.)"""
     d = _session().to_dict()
     key = damage.split(":")[0].strip('"')
     d.pop(key)
@@ -665,3 +666,77 @@ def test_replace_table_refuses_a_kept_list_that_is_not_one_old_row_per_new_neuro
     with pytest.raises(FdlcError):
         s.replace_table(NeuronTable(t.xyz), kept)
     assert s.user_id == ["AVAL", "", "", "RMDR"] and s.table is t
+
+
+def test_undo_of_a_points_edit_of_the_same_length_keeps_the_current_neuron():
+    """Points deleted and added in one edit (e.g. edits made with the dock closed, taken up as one
+    undoable edit, docs/gui.md §4) keep the row count. replace_table moves ``current`` to the
+    current neuron's new row; undo restores the old rows but leaves ``current`` at that row
+    number (_after_history_move only resets it when the row count changed), so after Ctrl+Z the
+    current neuron is another neuron and A/U/C act on it. Expected: after undo, ``current`` is
+    the same neuron as before the edit (or None). Instead it is the neuron at old row 2."""
+    s = _session()
+    t = s.table
+    s.select(3)
+    before = t.xyz[3].copy()
+    # neuron 0 deleted, a neuron added: old rows 1, 2, 3 become rows 0, 1, 2
+    new = NeuronTable(np.vstack([t.xyz[[1, 2, 3]], [[1.0, 2.0, 3.0]]]),
+                      {c: np.append(v[[1, 2, 3]], 50.0) for c, v in t.colours.items()})
+    s.replace_table(new, [1, 2, 3, None])
+    assert np.array_equal(s.table.xyz[s.current], before)  # followed to its new row
+    s.undo()
+    assert s.current is None or np.array_equal(s.table.xyz[s.current], before), (
+        f"after undo the current neuron is row {s.current} at {s.table.xyz[s.current]}, not the one at {before}")
+
+
+def test_decisions_from_a_frame_keep_a_name_written_unsure_as_unsure():
+    """decisions_from_frame: a ``user_id`` written 'AVAL?' is an unsure decision (parse_name
+    gives confidence 0.5), as a hand-edited session file's 'AVAL?' is (_agreeing_decisions: "a
+    name written AVAL? is the name AVAL, unsure"). With the CSV's ``status`` column still
+    saying 'corrected' (edited in a spreadsheet), the status column wins: the Decision is
+    status 'corrected' with conf 0.5, and seed_decisions makes it a sure decision — the '?' is
+    lost. Expected: status 'unsure'."""
+    df = pd.DataFrame({"user_id": ["AVAL?", "", "", ""], "status": ["corrected", "auto", "auto", "auto"]})
+    d = decisions_from_frame(df)
+    assert d[0].status == "unsure", f"'AVAL?' read as {d[0]}"
+    s = _session()
+    s.seed_decisions(d)
+    assert s.display_names()[0] == "AVAL?", f"seeded as {s.display_names()[0]!r} ({s.status[0]})"
+
+
+@pytest.mark.parametrize("order", ["missing", [], [0, 1, 2]], ids=["missing", "empty", "short"])
+def test_a_session_file_without_a_usable_order_reviews_lowest_confidence_first(tmp_path, order):
+    """review_order(): "Rows ordered by automatic confidence, lowest first"; N / Shift+N go
+    "lowest confidence first" (docs/gui.md §4). A labelled session file without ``order`` (older
+    or hand-edited), or with one that is not a permutation of the rows, loads with the table's
+    order (from_dict falls back to range(n)), so N walks the neurons in table order. Expected:
+    the fallback is the confidence order the labelling gave, [3, 2, 1, 0] here."""
+    s = _session()
+    s.accept(0)
+    expected = s.review_order()
+    assert expected == [3, 2, 1, 0]
+    d = s.to_dict()
+    if order == "missing":
+        del d["order"]
+    else:
+        d["order"] = order
+    r = ReviewSession.load(_write(tmp_path, d))
+    assert r.review_order() == expected, f"review order {r.review_order()}"
+
+
+@pytest.mark.parametrize("order", [5, [None, 1, 2, 3], {"a": 1}], ids=["number", "null-entry", "object"])
+def test_an_order_of_the_wrong_kind_does_not_keep_the_decisions_out_of_reach(tmp_path, order):
+    """docs/gui.md §5: "A setting of the wrong kind in a session file is ignored, not a reason to
+    leave the image closed" (a threshold of the wrong kind already falls back to the default).
+    ``order`` is only the review sequence, and one that is not a permutation already falls back
+    to a default; but an order that is a number, holds a null, or is an object makes the whole
+    file 'damaged' (FdlcError: int() of None...), so it is set aside and its decisions are not
+    restored. Expected: the file loads with the decisions, the order defaulted."""
+    s = _session()
+    s.accept(0)
+    s.assign(1, "RMDL")
+    d = s.to_dict()
+    d["order"] = order
+    r = ReviewSession.load(_write(tmp_path, d))
+    assert r.status[:2] == ["accepted", "corrected"]
+    assert sorted(r.review_order()) == [0, 1, 2, 3]

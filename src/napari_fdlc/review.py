@@ -289,8 +289,10 @@ def decisions_from_frame(df: pd.DataFrame) -> dict[int, Decision]:
             continue
         auto = df["auto_id"].iloc[i] if "auto_id" in df.columns else None
         auto = None if auto is None or pd.isna(auto) else str(auto)
-        if str(st) not in STATUSES or str(st) == "auto":
-            st = "unsure" if conf == UNSURE_CONF else ("accepted" if name == auto else "corrected")
+        if conf == UNSURE_CONF:  # 'AVAL?' is unsure, whatever a status column edited beside it says
+            st = "unsure"
+        elif str(st) not in STATUSES or str(st) == "auto":
+            st = "accepted" if name == auto else "corrected"
         ac = pd.to_numeric(df["auto_conf"].iloc[i], errors="coerce") if "auto_conf" in df.columns else np.nan
         out[i] = Decision(name, conf, st, auto, None if pd.isna(ac) else float(ac))
     return out
@@ -584,8 +586,10 @@ class ReviewSession:
             if not np.isfinite(xyz).all():  # a position of null: its export could not be read back
                 raise ValueError("a neuron without a position")
             s.labelled = bool(d.get("labelled", any(s.auto_id)))
-            order = [int(i) for i in d.get("order") or range(n)]
-            s.order = order if sorted(order) == list(range(n)) else list(range(n))
+            # an order of the wrong kind is ignored (as a threshold is), not a damaged file
+            order = d.get("order")
+            order = [i for i in order if isinstance(i, int) and not isinstance(i, bool)] if isinstance(order, list) else []
+            s.order = order if sorted(order) == list(range(n)) else _review_order(s)
             # rows added or moved by hand; a file from before they were kept does not say: any may be
             by_hand = d.get("by_hand")
             s.by_hand = np.ones(n, dtype=bool) if not isinstance(by_hand, list) else \
@@ -645,8 +649,7 @@ class ReviewSession:
             s.cand[j] = [str(c or "") for c in cand[j]]
             s.cand_p[j] = cand_p[j]
         s.labelled = True
-        conf = np.array([c if a else 0.0 for a, c in zip(s.auto_id, s.auto_conf)])
-        s.order = [int(i) for i in np.argsort(conf, kind="stable")]
+        s.order = _review_order(s)
         self.vocabulary = sorted(set(self.vocabulary) | set(labelling.names))
 
     def set_labelling(self, labelling: Labelling, description: str = "auto-label", fixed_rows=()) -> None:
@@ -887,8 +890,9 @@ class ReviewSession:
 
     def _after_history_move(self, edit: Edit) -> None:
         structure = len(edit.before.table) != len(edit.after.table) or edit.before.table is not edit.after.table
-        if self.current is not None and (self.current >= len(self) or len(edit.before.table) != len(edit.after.table)):
-            # Rows came back or went: the current row number may now be another cell.
+        if self.current is not None and (self.current >= len(self) or structure):
+            # Rows came back, went or moved (points deleted and as many added in one edit): the
+            # current row number may now be another neuron, which A/U/C would act on
             self.current = None
         self._changed("structure" if structure else ("labelling" if edit.rows is None else "edit"), edit.rows)
 
@@ -987,6 +991,15 @@ class ReviewSession:
 
 # ---------------------------------------------------------------------------------------------
 # helpers
+
+
+def _review_order(s: _State) -> list[int]:
+    """Rows in review order: the least confident automatic names first (a labelled session),
+    else the table's."""
+    if not s.labelled:
+        return list(range(len(s.table)))
+    conf = np.array([c if a else 0.0 for a, c in zip(s.auto_id, s.auto_conf)])
+    return [int(i) for i in np.argsort(conf, kind="stable")]
 
 
 def _known_settings(raw) -> dict:
