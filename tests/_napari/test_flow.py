@@ -466,3 +466,65 @@ def test_a_run_refused_at_the_start_does_not_show_a_full_progress_bar(make_napar
     widget.run_button.click()
     assert widget.last_error and "no image" in widget.last_error, widget.last_error
     assert widget.progress_bar.value() == 0, (widget.progress_bar.value(), widget.progress_bar.format())
+
+
+@pytest.fixture(scope="module")
+def moving_recording(tmp_path_factory):
+    """A small 3-frame OME-TIFF recording (T, C, Z, Y, X) whose worm moves 5 µm along x per frame
+    (frame t is frame 0 shifted by 10·t voxels of 0.5 µm), with the rendered worm of frame 0."""
+    from napari_fdlc.io.images import StackSeries, write_tiff
+    from napari_fdlc.render import random_worm, render_recording
+    from napari_fdlc.track import SequenceParams, simulate_sequence
+
+    worm = random_worm(30, size_um=(36, 14, 10), min_spacing_um=2.8, seed=5)
+    still = SequenceParams(frames=1, bend_curvature=0.0, roll=0.0, xy_rotation=0.0, drift_um=0.0,
+                           drop_fraction=(0.0, 0.0), max_spurious=0, jitter_um=0.0)
+    volumes, origins = simulate_sequence(worm, 1, still)
+    series, _ = render_recording(volumes, origins, voxel_size_zyx=(1.5, 0.5, 0.5), gut=False, seed=2)
+    first = np.asarray(series.data[0])
+    data = np.stack([np.roll(first, 10 * t, axis=-1) for t in range(3)])
+    path = tmp_path_factory.mktemp("rec4d") / "moving.ome.tif"
+    write_tiff(path, StackSeries(data, series.voxel_size_zyx, series.channel_roles, source=str(path),
+                                 channel_names=series.channel_names))
+    return path
+
+
+def _labelled(make_napari_viewer, path, identifier, templates, neurons=None):
+    viewer = make_napari_viewer()
+    viewer.open(str(path), plugin="napari-fdlc")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    return viewer, widget
+
+
+def _on_nuclei(viewer, world_zyx: np.ndarray, t: int) -> np.ndarray:
+    """Whether each world position (z, y, x µm) lies on a bright nucleus of frame ``t``'s W."""
+    w = next(layer for layer in viewer.layers if layer.name.endswith("[W]"))
+    volume = np.asarray(w.data[t], dtype=float)
+    vox = np.round(world_zyx / np.asarray(w.scale[1:], dtype=float)).astype(int)
+    vox = np.clip(vox, 0, np.asarray(volume.shape) - 1)
+    return volume[tuple(vox.T)] > np.percentile(volume, 90)
+
+
+def test_points_of_another_time_point_are_refused_by_auto_label(make_napari_viewer, moving_recording,
+                                                                            identifier, templates):
+    """Auto-label with a Points layer of one time point of a recording (points clicked on frame 2:
+    t, z, y, x, every t = 2) as Neurons: refused in one line (Auto-label names the first time
+    point). table_from_layer dropped the t coordinate and stack_from_layers gave the
+    recording's first volume: every colour was read in frame 0, where the worm is 10 µm away,
+    silently, and frame 0's decisions carried onto these neurons by position."""
+    from napari_fdlc.errors import FdlcError
+    from napari_fdlc.io.images import read_series
+    from napari_fdlc.segment import segment_stack
+
+    series = read_series(str(moving_recording))
+    frame2 = series.volume(2)
+    found = segment_stack(frame2, diameter_um=3.0)
+    viewer, widget = _labelled(make_napari_viewer, moving_recording, identifier, templates)
+    zyx = found.xyz[:, ::-1] / np.asarray(series.voxel_size_zyx)
+    viewer.add_points(np.column_stack([np.full(len(zyx), 2.0), zyx]), scale=viewer.layers[0].scale,
+                      name="clicked at t=2")
+    widget.set_neurons("clicked at t=2")
+    with pytest.raises(FdlcError, match="first time point"):
+        widget.auto_label()

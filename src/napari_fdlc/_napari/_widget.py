@@ -811,6 +811,7 @@ class AutoLabelWidget(QWidget):
                 raise FdlcError(f"no points layer '{source}'")
             points = self.viewer.layers[source]
             given_table = table_from_layer(points)
+            _refuse_another_time_point(points, images)
             points_scale = tuple(float(v) for v in points.scale[-3:])
             decisions = decisions_from_frame(points.features) if len(points.features) == len(given_table) else {}
             if image_key is None:
@@ -1693,6 +1694,20 @@ def _saved_session(image_key: str) -> tuple[ReviewSession | None, str | None]:
 # widgets docked in it: a session taken up again keeps its undo history, also after the dock
 # was closed and opened again (gui.md).
 _SESSIONS_SHOWN: dict[int, dict[str, ReviewSession]] = {}
+
+
+def _refuse_another_time_point(points, images: dict) -> None:
+    """Auto-label names a recording's first time point: neurons placed at another one (a t, z,
+    y, x points layer) had their colours read, and earlier decisions carried, in the first."""
+    image = next(iter(images.values()), None)
+    data = np.asarray(points.data, dtype=float)
+    if image is None or image.data.ndim < 4 or data.ndim != 2 or data.shape[1] < 4 or not len(data):
+        return
+    t = data[0, -4] * float(points.scale[-4]) + float(points.translate[-4])  # (one time point: checked before)
+    first = float(image.translate[-4])  # the world t of the recording's first frame
+    if not np.isclose(t, first, rtol=0, atol=1e-6 * max(1.0, abs(float(image.scale[-4])))):
+        raise FdlcError(f"'{points.name}' lies at t = {t:g}; Auto-label names the recording's first time point "
+                        f"(t = {first:g}): place the neurons there, or follow them over time with the Track widget")
 
 
 def _lacking(hand_made: np.ndarray, detected: np.ndarray) -> int:
