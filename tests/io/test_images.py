@@ -816,39 +816,13 @@ def test_a_lazily_read_tiff_that_is_refused_is_closed(tmp_path, monkeypatch, axe
     assert not unclosed, unclosed
 
 
-class _FakeND2:
-    """The part of nd2.ND2File that read_nd2 uses, recording whether it was closed."""
-
-    def __init__(self, data, sizes):
-        self._data = data
-        self.sizes = sizes
-        self.dtype = data.dtype
-        self.metadata = SimpleNamespace(channels=[SimpleNamespace(channel=SimpleNamespace(name=n))
-                                                  for n in ("TagRFP-T", "GCaMP6s")])
-        self.closed = False
-
-    def voxel_size(self, channel=0):
-        return SimpleNamespace(x=0.25, y=0.25, z=1.5)
-
-    def asarray(self):
-        return self._data
-
-    def to_dask(self):
-        import dask.array as da
-
-        return da.from_array(self._data)
-
-    def close(self):
-        self.closed = True
-
-
 def test_a_lazily_read_nd2_recording_refused_as_a_stack_is_closed(tmp_path, monkeypatch):
     """read_stack on an ND2 recording over 1 GiB (the usual size of a recording) refuses it
     ("a recording of 3 time points"); read_nd2 closes the file on every other refusal (and
     after an eager read), so this one should be closed too. Instead the ND2File is left open:
     read_nd2 keeps it open for the dask array and finish_stack's refusal skips the close."""
     data = _recording_tczyx().transpose(0, 2, 1, 3, 4)  # T, Z, C, Y, X as nd2 gives it
-    fake = _FakeND2(data, {"T": 3, "Z": 4, "C": 2, "Y": 16, "X": 16})
+    fake = FakeND2(data, {"T": 3, "Z": 4, "C": 2, "Y": 16, "X": 16}, voxel=(0.25, 0.25, 1.5), names=("TagRFP-T", "GCaMP6s"))
     monkeypatch.setattr(images, "LAZY_BYTES", 0)
     with pytest.raises(ImageError, match="recording"):
         read_nd2(tmp_path / "rec.nd2", opener=lambda p: fake)
@@ -860,7 +834,7 @@ def test_a_lazily_read_nd2_whose_data_do_not_fit_its_sizes_is_closed(tmp_path, m
     lazily (over 1 GiB), the file should still be closed. Instead it is left open (the
     shape check raises after the lazy branch skipped ``f.close()``)."""
     data = _recording_tczyx()[0].transpose(1, 0, 2, 3)  # Z, C, Y, X
-    fake = _FakeND2(data, {"Z": 4, "C": 2, "Y": 16, "X": 17})  # sizes say one more column
+    fake = FakeND2(data, {"Z": 4, "C": 2, "Y": 16, "X": 17}, voxel=(0.25, 0.25, 1.5), names=("TagRFP-T", "GCaMP6s"))  # sizes say one more column
     monkeypatch.setattr(images, "LAZY_BYTES", 0)
     with pytest.raises(ImageError, match="does not match"):
         read_nd2(tmp_path / "w.nd2", opener=lambda p: fake)
