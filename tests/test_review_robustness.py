@@ -740,3 +740,28 @@ def test_an_order_of_the_wrong_kind_does_not_keep_the_decisions_out_of_reach(tmp
     r = ReviewSession.load(_write(tmp_path, d))
     assert r.status[:2] == ["accepted", "corrected"]
     assert sorted(r.review_order()) == [0, 1, 2, 3]
+
+
+
+@pytest.mark.parametrize("key, value", [("vocabulary", "AVAL"), ("image", 7)])
+def test_a_session_entry_of_the_wrong_kind_is_ignored_not_misread(tmp_path, key, value):
+    """Entries of a hand-edited session file that are of the wrong kind are ignored, as a
+    threshold of the wrong kind is (docs/gui.md §5): a vocabulary given as one string became
+    its letters, and an image key that is a number made the whole file damaged (its decisions
+    set aside)."""
+    session = _session()
+    session.assign(0, "AVAL")
+    d = session.to_dict()
+    d[key] = value
+    back = ReviewSession.load(_write(tmp_path, d))
+    assert back.user_id[0] == "AVAL"
+    assert all(len(name) > 1 for name in back.vocabulary), back.vocabulary
+    assert back.image is None or isinstance(back.image, str)
+
+
+def test_labelled_written_as_text_is_not_read_as_true(tmp_path):
+    """``"labelled": "false"`` (text, hand-edited) in the file of a session never labelled was
+    read as True (bool of a non-empty string): a session without answers taken as labelled."""
+    d = ReviewSession(_table(), voxel_size_zyx=VOXEL).to_dict()
+    d["labelled"] = "false"
+    assert ReviewSession.load(_write(tmp_path, d))._s.labelled is False

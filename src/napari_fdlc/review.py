@@ -571,9 +571,11 @@ class ReviewSession:
                 table,
                 threshold=_threshold_or_default(d.get("threshold", DEFAULT_THRESHOLD)),
                 voxel_size_zyx=d.get("voxel_size_zyx"),
-                image=d.get("image"),
+                # entries of the wrong kind ignored (as a threshold is), not a damaged file: an
+                # image key that is no text, a vocabulary that is one string (not its letters)
+                image=d.get("image") if isinstance(d.get("image"), str) else None,
                 path=path,
-                names=[v for v in d.get("vocabulary") or () if isinstance(v, str)],
+                names=[v for v in d.get("vocabulary") if isinstance(v, str)] if isinstance(d.get("vocabulary"), list) else [],
             )
             s = session._s
             s.auto_id = [str(x or "") for x in nd["auto_id"]]
@@ -585,7 +587,8 @@ class ReviewSession:
             s.status = [str(x) for x in nd["status"]]
             if not np.isfinite(xyz).all():  # a position of null: its export could not be read back
                 raise ValueError("a neuron without a position")
-            s.labelled = bool(d.get("labelled", any(s.auto_id)))
+            labelled = d.get("labelled")
+            s.labelled = labelled if isinstance(labelled, bool) else any(s.auto_id)  # ("false" is no False)
             # an order of the wrong kind is ignored (as a threshold is), not a damaged file
             order = d.get("order")
             order = [i for i in order if isinstance(i, int) and not isinstance(i, bool)] if isinstance(order, list) else []
