@@ -564,9 +564,8 @@ def write_neuropal_id(
         if ours in table.colours:
             v = table.colours_as_read()[ours]
             finite = np.isfinite(v)  # a neuron without a reading leaves its cell empty, not the column NaN
-            means[k] = float(v[finite].mean()) if finite.any() else 0.0
-            sds[k] = float(v[finite].std()) if finite.any() else 0.0
-            sds[k] = sds[k] or 1.0
+            if finite.any():
+                means[k], sds[k] = float(v[finite].mean()), float(v[finite].std()) or 1.0
             z = (v - means[k]) / sds[k]
             rows[theirs] = [f"{x:.4f}" if np.isfinite(x) else "" for x in z]
     preamble = [

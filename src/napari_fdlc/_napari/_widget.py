@@ -1144,9 +1144,7 @@ class AutoLabelWidget(QWidget):
         self._bind_keys(layer)
         if catch_up:
             self._catch_up()
-            if session.settings.get("layer_name") != layer.name:  # renamed before any widget followed it
-                session.settings["layer_name"] = layer.name
-                session.autosave()
+            _remember_layer_name(session, layer)  # renamed before any widget followed it
         self._refresh_layer(structure=True)
         with self._guarded():
             self.viewer.layers.selection.active = layer
@@ -1727,7 +1725,12 @@ def _record_layer_name(event) -> None:
     layer = event.source
     path = ((getattr(layer, "metadata", None) or {}).get(META_KEY) or {}).get("session")
     session = next((shown[path] for shown in _SESSIONS_SHOWN.values() if path in shown), None) if path else None
-    if session is not None and session.settings.get("layer_name") != layer.name:
+    if session is not None:
+        _remember_layer_name(session, layer)
+
+
+def _remember_layer_name(session: ReviewSession, layer) -> None:
+    if session.settings.get("layer_name") != layer.name:
         session.settings["layer_name"] = layer.name
         session.autosave()
 
