@@ -507,6 +507,33 @@ def _on_nuclei(viewer, world_zyx: np.ndarray, t: int) -> np.ndarray:
     return volume[tuple(vox.T)] > np.percentile(volume, 90)
 
 
+def test_a_recordings_neuron_ids_are_drawn_at_the_time_point_they_name(make_napari_viewer, moving_recording,
+                                                                         identifier, templates):
+    """Auto-label on a recording names its first time point, and its neuron-ID layer has a time
+    axis: napari draws the names at that time point only (they were drawn over every frame, on
+    a worm that moved away), N brings the time slider back to it, and a neuron added at
+    another time point is refused in one line, the session unchanged."""
+    viewer, widget = _labelled(make_napari_viewer, moving_recording, identifier, templates)
+    layer = widget.auto_label()
+    assert layer is not None, widget.last_error
+    image = next(lay for lay in viewer.layers if lay.name.endswith("[W]"))
+    assert layer.ndim == 4 and np.all(np.asarray(layer.data)[:, 0] == 0)
+    assert layer.scale[0] == image.scale[0] and layer.translate[0] == image.translate[0]
+    np.testing.assert_allclose(widget.session.table.xyz[:, ::-1],
+                               np.asarray(layer.data)[:, 1:] * np.asarray(layer.scale[1:]))
+    viewer.dims.set_point(0, 2)
+    assert len(layer._view_indices) == 0  # none drawn at frame 2
+    widget.next_neuron()
+    assert viewer.dims.point[0] == 0 and len(layer._view_indices) > 0
+    viewer.dims.set_point(0, 2)
+    n = len(widget.session)
+    layer.add(np.r_[2.0, layer.data[0][1:] + 3])
+    assert widget.last_error and "first time point" in widget.last_error, widget.last_error
+    assert len(layer.data) == len(widget.session) == n
+    layer.add(np.r_[0.0, layer.data[0][1:] + 3])  # at the named time point: a neuron added
+    assert len(layer.data) == len(widget.session) == n + 1
+
+
 def test_points_of_another_time_point_are_refused_by_auto_label(make_napari_viewer, moving_recording,
                                                                             identifier, templates):
     """Auto-label with a Points layer of one time point of a recording (points clicked on frame 2:

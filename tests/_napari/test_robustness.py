@@ -363,6 +363,7 @@ def test_reopening_a_recording_restores_its_neuron_ids(make_napari_viewer, recor
     _, widget2 = again.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
     names = [layer.name for layer in again.layers]
     assert widget2.session is not None and widget2.session.user_id[0] == "AVAL", names
+    assert widget2.layer.ndim == 4, "restored without its time axis: drawn over every time point"
 
 
 def test_review_keys_on_an_earlier_neuron_id_layer_act_on_that_layer(labelled_viewer, tmp_path):

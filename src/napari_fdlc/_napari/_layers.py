@@ -386,13 +386,38 @@ def review_colours(session) -> np.ndarray:
     return out
 
 
+def session_time_axis(session) -> tuple[float, float] | None:
+    """(scale, translate) of the time axis of the recording a session names a time point of
+    (its first frame, data t = 0), None for a stack or a file that says nothing usable."""
+    value = (getattr(session, "settings", None) or {}).get("time_axis")
+    try:
+        step, first = (float(v) for v in value)
+    except (TypeError, ValueError):
+        return None
+    return (step, first) if np.isfinite(step) and step > 0 and np.isfinite(first) else None
+
+
+def review_coordinates(session, ndim: int | None = None) -> tuple[np.ndarray, tuple, tuple]:
+    """Data coordinates, scale and translate of a session's neuron-ID layer: z, y, x, with a
+    leading t (the named time point) for a recording, so that napari draws the names at that
+    time point only. ``ndim``: an existing layer's dimensions (one made before names had a time
+    axis stays 3D)."""
+    coords, scale = points_coordinates(session.table.xyz, session.voxel_size_zyx)
+    time_axis = session_time_axis(session)
+    if time_axis is None or ndim == 3:
+        return coords, scale, (0.0,) * 3
+    coords = np.column_stack([np.zeros(len(coords)), coords])
+    return coords, (time_axis[0], *scale), (time_axis[1], 0.0, 0.0, 0.0)
+
+
 def review_points(session, name: str, metadata: dict | None = None) -> tuple:
     """Layer data tuple of the result layer for a review session."""
-    coords, scale = points_coordinates(session.table.xyz, session.voxel_size_zyx)
+    coords, scale, translate = review_coordinates(session)
     features = review_features(session)
     kwargs = {
         "name": name,
         "scale": scale,
+        "translate": translate,
         "size": point_size(scale),
         "features": features,
         "feature_defaults": review_defaults(features),
@@ -401,7 +426,7 @@ def review_points(session, name: str, metadata: dict | None = None) -> tuple:
         "border_width": 0.14,
         "border_width_is_relative": True,
         "text": review_text(),
-        "axis_labels": ("z", "y", "x"),
+        "axis_labels": ("t", "z", "y", "x")[-coords.shape[1]:],
         "metadata": {META_KEY: dict(metadata or {})},
     }
     return (coords, kwargs, "points")

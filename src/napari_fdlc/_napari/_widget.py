@@ -85,11 +85,12 @@ from ._layers import (
     layer_role,
     named_count,
     point_size,
-    points_coordinates,
     review_colours,
+    review_coordinates,
     review_defaults,
     review_features,
     review_points,
+    session_time_axis,
     stack_from_layers,
     table_from_layer,
     voxel_unknown,
@@ -880,6 +881,9 @@ class AutoLabelWidget(QWidget):
                 self._stack = stack
             voxel = stack.voxel_size_zyx if stack is not None else voxel_without_image
             settings = {"template": template_text, "colour": use_colour, "diameter_um": diameter}
+            recording = next((layer for layer in images.values() if layer.data.ndim >= 4), None)
+            if recording is not None:  # the names are drawn at the time point they name (the first)
+                settings["time_axis"] = [float(recording.scale[-4]), float(recording.translate[-4])]
             if stack is not None:
                 settings["voxel_size_set"] = voxel_set
             if own:
@@ -1199,7 +1203,7 @@ class AutoLabelWidget(QWidget):
             return
         with self._guarded():
             if structure or len(layer.data) != len(session):
-                coords, scale = points_coordinates(session.table.xyz, session.voxel_size_zyx)
+                coords, scale, _ = review_coordinates(session, layer.ndim)
                 if len(layer.scale) == len(scale) and not np.allclose(layer.scale, scale):
                     # a layer reused after the voxel size changed: its data are in the new voxels
                     layer.scale = scale
@@ -1230,7 +1234,15 @@ class AutoLabelWidget(QWidget):
             self._report_error(exc)
 
     def _sync_structure(self, action: str, indices) -> None:
-        n_old, n_new = len(self.session), len(self.layer.data)
+        data = np.asarray(self.layer.data, dtype=float)
+        if data.ndim == 2 and data.shape[1] == 4 and len(data) and np.any(data[:, 0] != 0):
+            # a point added at another time point of the recording: the names are of the first
+            self._refresh_layer(structure=True)
+            time_axis = session_time_axis(self.session)
+            first = f" (t = {time_axis[1]:g})" if time_axis else ""
+            raise FdlcError(f"'{self.layer.name}' names the recording's first time point{first}: move the time "
+                            "slider there to add a neuron, or follow neurons over time with the Track widget")
+        n_old, n_new = len(self.session), len(data)
         moved = []
         if action == "removed" or n_new < n_old:
             removed = {int(i) for i in np.atleast_1d(indices)} if n_old - n_new == len(np.atleast_1d(indices)) else None
@@ -1253,10 +1265,10 @@ class AutoLabelWidget(QWidget):
         undoable edit. They were overwritten by the session's table, and in no file. Each point
         carries its session row (feature ``neuron``; a point added has none)."""
         layer, session = self.layer, self.session
-        coords, scale = points_coordinates(session.table.xyz, session.voxel_size_zyx)
+        coords, scale, _ = review_coordinates(session, layer.ndim)
         data = np.asarray(layer.data, dtype=float)
-        if "neuron" not in layer.features.columns or data.ndim != 2 or data.shape[1] != 3 or \
-                not np.allclose(np.asarray(layer.scale, dtype=float)[-3:], scale):
+        if "neuron" not in layer.features.columns or data.shape != (len(data), len(scale)) or \
+                not np.allclose(np.asarray(layer.scale, dtype=float), scale):
             return  # not the layer as this session left it: shown afresh
         rows = pd.to_numeric(layer.features["neuron"], errors="coerce").to_numpy(dtype=float)
         kept, seen = [], set()
