@@ -327,3 +327,17 @@ def test_track_several_image_files_is_not_called_a_table_sequence(tmp_path, two_
     assert "table sequence" not in err, err
     assert "UTF-8" not in err, err
     assert any(word in err for word in ("image", "recording", "fdlc segment")), err
+
+
+def test_track_an_nwb_file_is_refused_as_no_recording(tmp_path, capsys):
+    """An NWB file holds NeuroPAL's one annotated volume (image_formats.md), while `fdlc track`
+    said it took "NWB with a time axis": given one with a GCaMP series beside it, it tracked
+    that one volume, exit 0, silently. Now one line saying so, exit 2, nothing written."""
+    from napari_fdlc.io.nwb import write_nwb
+
+    stack = Stack(np.zeros((4, 3, 8, 8), dtype=np.uint16), (1.5, 0.5, 0.5), ["R", "G", "B", "W"])
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, stack)
+    out = tmp_path / "tracks.csv"
+    assert run("track", path, "--method", "geometry", "--quiet", "--out", out) == 2
+    assert "one annotated volume, not a recording" in one_line(capsys) and not out.exists()

@@ -37,7 +37,7 @@ class _InOrder(argparse.Action):
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("inputs", nargs="+", metavar="INPUT",
                         help="a CSV with a t column, a folder of CSVs, several CSVs (one volume each), "
-                        "or an image recording (TIFF, OME-TIFF, ND2 or NWB with a time axis; segmented first)")
+                        "or an image recording (TIFF, OME-TIFF or ND2 with a time axis; segmented first)")
     parser.add_argument("--reference", action=_InOrder, default=[], metavar="R.csv",
                         help="reference volume of the same worm, labelled or not (repeatable); default: the first time point")
     parser.add_argument("--reference-t", action=_InOrder, default=[], metavar="T",
@@ -161,12 +161,17 @@ def _image_recording(inputs: list[str]) -> str | None:
     from .io.images import is_image_file
 
     images = [p for p in inputs if Path(p).suffix.lower() != ".csv" and is_image_file(p)]
+    if images and Path(images[0]).suffix.lower() == ".nwb":  # read, it tracked that one volume, silently
+        raise FdlcError(f"{images[0]}: an NWB file holds NeuroPAL's one annotated volume, not a recording; fdlc "
+                        f"track takes {_RECORDINGS}")
     if len(inputs) == 1 and images:
         return inputs[0]
     if images:  # else read as tables: "not a UTF-8 text CSV file", after a warning about tables
-        raise FdlcError(f"{images[0]}: an image among {len(inputs)} inputs; fdlc track takes one recording file "
-                        "(TIFF, OME-TIFF, ND2 or NWB with a time axis), or the tables fdlc segment writes")
+        raise FdlcError(f"{images[0]}: an image among {len(inputs)} inputs; fdlc track takes {_RECORDINGS}")
     return None
+
+
+_RECORDINGS = "one recording file (TIFF, OME-TIFF or ND2 with a time axis), or the tables fdlc segment writes"
 
 
 def _reference_time(raw: str) -> float:

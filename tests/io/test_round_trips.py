@@ -17,6 +17,10 @@ from napari_fdlc.io.nwb import write_nwb
 from napari_fdlc.match import make_labelling
 from napari_fdlc.review import ReviewSession
 from napari_fdlc.table import NEUROPAL_ID_HEADER, NeuronTable, read_table, write_neuropal_id, write_table
+from datetime import datetime, timezone
+import h5py
+from napari_fdlc.io.images import ImageError, VoxelSizeUnknown
+from napari_fdlc.io.nwb import read_nwb_neurons
 
 VOXEL = {"PhysicalSizeX": 0.25, "PhysicalSizeY": 0.25, "PhysicalSizeZ": 1.5}
 
@@ -416,3 +420,203 @@ def test_a_neuropal_id_export_says_the_mean_and_sd_its_colours_were_z_scored_wit
                                          ("W", "Z-Scored White")]):
         undone = out[theirs].astype(float).to_numpy() * sds[k] + means[k]
         np.testing.assert_allclose(undone, table.colours[ours], atol=1e-3 * max(1.0, sds[k]))
+
+
+NAMES = ["mNeptune2.5", "CyOFP1.5", "mTagBFP2", "TagRFP-T"]
+
+
+def _named_stack(shape=(4, 5, 16, 24)):
+    data = np.random.default_rng(0).integers(0, 4000, shape).astype(np.uint16)
+    return Stack(data, (1.5, 0.25, 0.3), ["R", "G", "B", "W"], channel_names=NAMES)
+
+
+def _nwb_with_plane():
+    from pynwb import NWBFile
+    from pynwb.image import ImageSeries
+    from pynwb.ophys import OpticalChannel
+
+    nwb = NWBFile(session_description="t", identifier="t", session_start_time=datetime.now(timezone.utc))
+    device = nwb.create_device(name="Microscope")
+    plane = nwb.create_imaging_plane(
+        name="NeuroPALImVol", optical_channel=[OpticalChannel(name=f"c{i}", description="", emission_lambda=np.nan)
+                                               for i in range(4)],
+        description="", device=device, excitation_lambda=np.nan, indicator="NeuroPAL", location="head",
+        grid_spacing=[0.3, 0.25, 1.5], grid_spacing_unit="micrometers")
+    xyzc = np.random.default_rng(0).integers(0, 4000, (24, 16, 5, 4)).astype(np.uint16)
+    nwb.add_acquisition(ImageSeries(name="NeuroPALImageRaw", data=xyzc, unit="n/a", rate=1.0))
+    return nwb, plane
+
+
+def _save(nwb, path):
+    from pynwb import NWBHDF5IO
+
+    with NWBHDF5IO(str(path), "w") as io:
+        io.write(nwb)
+
+
+def _calcium_rois(seg, plane):
+    """A calcium segmentation as ophys files hold it: ROIs as 3D image masks, no voxel_mask."""
+    ps = seg.create_plane_segmentation(name="CalciumROIs", description="", imaging_plane=plane)
+    mask = np.zeros((24, 16, 5))
+    mask[3:5, 3:5, 2] = 1
+    ps.add_roi(image_mask=mask)
+    ps.add_roi(image_mask=mask[::-1])
+
+
+def test_read_nwb_neurons_finds_the_voxel_mask_segmentation_beside_a_calcium_one(tmp_path):
+    """Expected (docs/image_formats.md: the neurons of NeuroPALNeurons "else any segmentation
+    with a voxel_mask"): a file whose ImageSegmentation holds a calcium PlaneSegmentation
+    (image_mask ROIs) and the annotated neurons (voxel_mask, ID_labels) under another name reads
+    those neurons. Actual: ImageError "the NWB voxel_mask cannot be read ('voxel_mask')".
+    Cause: nwb._find_neurons takes any object with ``hasattr(sub, 'voxel_mask')`` as a candidate,
+    and every pynwb PlaneSegmentation has that attribute (a predefined optional column), so the
+    calcium ROIs, listed first, are chosen and their missing voxel_mask column fails."""
+    from pynwb.ophys import ImageSegmentation
+
+    nwb, plane = _nwb_with_plane()
+    module = nwb.create_processing_module(name="ophys", description="")
+    seg = ImageSegmentation(name="ImageSegmentation")
+    module.add(seg)
+    _calcium_rois(seg, plane)
+    somata = seg.create_plane_segmentation(name="Somata", description="", imaging_plane=plane)
+    somata.add_column(name="ID_labels", description="")
+    somata.add_roi(voxel_mask=[(10, 10, 2, 1.0)], ID_labels="AVAL")
+    somata.add_roi(voxel_mask=[(4, 6, 3, 1.0)], ID_labels="AVAR")
+    path = tmp_path / "two_segmentations.nwb"
+    _save(nwb, path)
+    table = read_nwb_neurons(path, colours=False)
+    assert list(table.labels) == ["AVAL", "AVAR"]
+    np.testing.assert_allclose(table.xyz, [[3.0, 2.5, 3.0], [1.2, 1.5, 4.5]])
+
+
+def test_nwb_with_only_a_calcium_segmentation_has_no_neurons_to_read(tmp_path):
+    """Expected: a file with a NeuroPAL image and a calcium segmentation of image masks only
+    (no voxel_mask anywhere) has no annotated neurons: read_nwb_neurons says "no neuron
+    segmentation", which napari's reader (_napari/_io.py:_nwb_neurons) takes silently as a file
+    without neurons. Actual: "the NWB voxel_mask cannot be read ('voxel_mask')", and napari
+    shows that as a warning on every open of the file. Cause: nwb._find_neurons' hasattr test
+    (every PlaneSegmentation has a voxel_mask attribute) instead of the table's colnames."""
+    from pynwb.ophys import ImageSegmentation
+
+    nwb, plane = _nwb_with_plane()
+    module = nwb.create_processing_module(name="ophys", description="")
+    seg = ImageSegmentation(name="ImageSegmentation")
+    module.add(seg)
+    _calcium_rois(seg, plane)
+    path = tmp_path / "calcium_only.nwb"
+    _save(nwb, path)
+    with pytest.raises(ImageError) as exc:
+        read_nwb_neurons(path, colours=False)
+    assert "no neuron segmentation" in str(exc.value), str(exc.value)
+
+
+def test_nwb_grid_spacing_in_metres_with_one_unknown_axis_keeps_the_others_in_um(tmp_path):
+    """Expected: grid_spacing [3e-7, 2.5e-7, NaN] labelled 'meters' (z not known) is 0.3 and
+    0.25 µm in x and y with z asked for: VoxelSizeUnknown.known == (None, 0.25, 0.3), which
+    napari's reader uses as the layers' scale until z is set. Actual: known == (None, 2.5e-07,
+    3e-07): the x, y layers are shown a million times too small. Cause:
+    nwb._grid_spacing_um decides metres-vs-µm with ``gs.max() < 1e-3``, and the max of an
+    array holding NaN is NaN (the comparison False), so the metre values are taken as µm."""
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, _named_stack())
+    with h5py.File(path, "a") as f:
+        spacing = f["general/optophysiology/NeuroPALImVol/grid_spacing"]
+        spacing[...] = [3e-7, 2.5e-7, np.nan]
+        spacing.attrs["unit"] = "meters"
+    with pytest.raises(VoxelSizeUnknown) as exc:
+        read_stack(path)
+    known = exc.value.known
+    assert known[0] is None
+    assert known[1:] == pytest.approx((0.25, 0.3)), known
+
+
+def test_nwb_channel_names_are_read_without_grid_spacing_or_origin(tmp_path):
+    """Expected: order_optical_channels/channels names the channels whatever else the imaging
+    plane holds; grid_spacing and origin_coords are optional in NWB's ImagingPlane, and without
+    grid_spacing the voxel size is given by the user. Actual: the names come back as
+    ['R', 'G', 'B', 'W'] (the names are lost; a file without RGBW_channels loses its roles with
+    them). Cause: nwb._volume_channel_names finds the plane's HDF5 group through
+    _h5_group_of, which only looks at the grid_spacing, data and origin_coords datasets."""
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, _named_stack())
+    with h5py.File(path, "a") as f:
+        del f["general/optophysiology/NeuroPALImVol/grid_spacing"]
+        del f["general/optophysiology/NeuroPALImVol/origin_coords"]
+    got = read_stack(path, voxel_size=(1.5, 0.25, 0.3))
+    assert got.channel_names == NAMES
+
+
+def test_an_nwb_file_pynwb_cannot_read_is_not_left_open(tmp_path):
+    """Expected: a file refused as "not a readable NWB file" is closed again, so that it can be
+    repaired (or replaced) from the same session, e.g. napari's console. Actual: the HDF5 file
+    stays open read-only while the error lives (napari keeps it for its notification), and
+    h5py.File(path, 'a') fails with "file is already open for read-only". Cause: nwb._open
+    closes the NWBHDF5IO only after a successful io.read(); when read() raises, the reader is
+    left open (referenced from the exception's context)."""
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, _named_stack())
+    with h5py.File(path, "a") as f:
+        del f["session_start_time"]  # a required field missing: pynwb cannot build the NWBFile
+    with pytest.raises(ImageError) as exc:
+        read_stack(path)
+    assert exc.value is not None  # the error is still held, as napari holds it
+    with h5py.File(path, "a") as f:  # a repair
+        f["session_start_time"] = "2020-01-01T00:00:00+00:00"
+
+
+def test_an_nwb_file_pynwb_cannot_build_is_refused_in_a_short_line(tmp_path):
+    """Expected: a file that pynwb cannot build (here its required 'identifier' is missing) is
+    refused with one readable line. Actual: a one-"line" message of several thousand
+    characters, pynwb's dump of the whole file's builder tree (every group, dataset and
+    attribute), ending in "missing argument 'identifier'". Cause: nwb._open puts
+    _first_line(exc) of hdmf's ConstructError in the message, and that error's first line is
+    the repr of the root GroupBuilder."""
+    path = tmp_path / "worm.nwb"
+    write_nwb(path, _named_stack())
+    with h5py.File(path, "a") as f:
+        del f["identifier"]
+    with pytest.raises(ImageError) as exc:
+        read_stack(path)
+    message = str(exc.value)
+    assert "\n" not in message
+    assert len(message) < 400, f"{len(message)} characters: {message[:300]}..."
+
+
+def test_nwb_image_stored_in_an_external_file_is_not_called_2d(tmp_path):
+    """Expected: an ImageSeries 'NeuroPALImageRaw' whose frames are in an external file
+    (external_file + format='external', valid NWB; its data is an empty placeholder) is refused
+    with a line that says the image is not in the NWB file (naming the external file). Actual:
+    "a 2D image (one Z plane); fdlc needs a 3D stack with several Z planes", which is not true
+    of anything in the file. Cause: nwb.read_nwb reads the empty (0, 0, 0) placeholder as an
+    x, y, z volume and finish_stack judges its shape."""
+    from pynwb.image import ImageSeries
+
+    nwb, plane = _nwb_with_plane()
+    nwb.acquisition.pop("NeuroPALImageRaw")
+    nwb.add_acquisition(ImageSeries(name="NeuroPALImageRaw", external_file=["worm.tif"], format="external",
+                                    starting_frame=[0], timestamps=[0.0], unit="n/a"))
+    path = tmp_path / "external.nwb"
+    _save(nwb, path)
+    with pytest.raises(ImageError) as exc:
+        read_stack(path)
+    message = str(exc.value)
+    assert "2D" not in message and "worm.tif" in message, message
+
+
+def test_write_nwb_with_an_empty_neuron_table(tmp_path):
+    """Expected: write_nwb(path, stack, neurons) with a table of no neurons (an empty Points
+    layer or segmentation) either writes the image with an empty segmentation or is refused in
+    one line (an FdlcError), nothing left on disk. Actual: a bare hdmf ``Exception`` "could not
+    resolve dtype for VectorData 'ID_labels': Cannot infer dtype of empty list or tuple",
+    which fdlc's error handling does not catch (a traceback). Cause: write_nwb adds the
+    ID_labels column without a dtype and no row, so hdmf cannot infer its type on write."""
+    path = tmp_path / "worm.nwb"
+    try:
+        write_nwb(path, _named_stack(), NeuronTable(np.zeros((0, 3))))
+    except FdlcError as exc:
+        assert "\n" not in str(exc)
+        assert list(tmp_path.iterdir()) == []
+        return
+    except Exception as exc:  # noqa: BLE001 - the defect
+        pytest.fail(f"{type(exc).__module__}.{type(exc).__name__}: {exc}")
+    assert read_stack(path).data.shape == (4, 5, 16, 24)

@@ -58,15 +58,29 @@ def _open(path: str | os.PathLike):
             # Files written by other tools raise many harmless spec/version warnings.
             warnings.simplefilter("ignore")
             io = NWBHDF5IO(str(path), "r", load_namespaces=True)
-            nwb = io.read()
+            try:
+                nwb = io.read()
+            except BaseException:  # closed now: a refused file can be repaired or replaced at once
+                io.close()
+                raise
     except FdlcError:
         raise
     except Exception as exc:
-        raise ImageError(f"{source}: not a readable NWB file ({_first_line(exc)})") from None
+        raise ImageError(f"{source}: not a readable NWB file ({_reason(exc)})") from None
     try:
         yield nwb
     finally:
         io.close()
+
+
+def _reason(exc: BaseException) -> str:
+    """pynwb's reason in a line: hdmf's construction errors begin with a dump of the whole
+    file's builder tree (thousands of characters) and say why after 'due to:'."""
+    text = str(exc)
+    if "due to:" in text:
+        text = text.rsplit("due to:", 1)[1]
+    line = _first_line(Exception(text.strip())) or _first_line(exc)
+    return line if len(line) <= 200 else line[:199] + "…"
 
 
 def _children(container):
@@ -141,7 +155,8 @@ def _grid_spacing_um(volume) -> list[float | None] | None:
     # NWB's default grid unit is "meters", but NeuroPAL writers store µm values under it; trust the
     # magnitude: sub-millimetre numbers labelled metres are converted, others are taken as µm.
     metres = unit and _to_um(1.0, unit) == 1e6
-    if metres and gs.max() < 1e-3:
+    known = gs[np.isfinite(gs)]  # an axis not known (NaN) says nothing of the unit
+    if metres and known.size and np.abs(known).max() < 1e-3:
         factor = 1e6
     elif unit and not metres:
         factor = _to_um(1.0, unit)
@@ -165,6 +180,9 @@ def _volume_channel_names(volume, image) -> list[str] | None:
     if volume is not None:
         try:
             group = _h5_group_of(volume)
+            if group is None and getattr(getattr(image, "data", None), "file", None) is not None:
+                # a plane without grid spacing or origin (both optional): found by its path
+                group = image.data.file.get(f"general/optophysiology/{volume.name}")
             if group is not None and "order_optical_channels" in group:
                 return [_text(c) for c in group["order_optical_channels"]["channels"][()]]
         except Exception:
@@ -249,6 +267,10 @@ def read_nwb(
             raise ImageError(f"{source}: no NeuroPAL image in the NWB file (looked for acquisition['{IMAGE_NAME}'], "
                              "else a 3D or 4D volume with NeuroPAL in its name)")
         dset = image.data
+        outside = list(getattr(image, "external_file", None) or [])
+        if outside and 0 in tuple(getattr(dset, "shape", (0,))):  # its data: an empty stand-in
+            raise ImageError(f"{source}: the NeuroPAL image is kept outside the NWB file, in "
+                             f"{', '.join(_text(f) for f in outside)}; open that file instead")
         if dset.ndim == 3:  # x, y, z without a channel axis
             axes = "XYZ"
         else:
@@ -283,7 +305,10 @@ def _find_neurons(nwb):
         for name, obj in _children(module):
             inner = _children(obj) if not hasattr(obj, "colnames") else []
             for sub_name, sub in inner or [(name, obj)]:
-                if "voxel_mask" in getattr(sub, "colnames", ()) or hasattr(sub, "voxel_mask"):
+                # a column of the table (every pynwb PlaneSegmentation has the attribute: a
+                # calcium segmentation of image masks has it empty)
+                columns = getattr(sub, "colnames", None)
+                if "voxel_mask" in (columns or ()) or (columns is None and getattr(sub, "voxel_mask", None) is not None):
                     candidates.append((f"{mname}/{name}/{sub_name}", sub_name, sub))
     for full, name, obj in candidates:
         if name == NEURONS_NAME:
@@ -422,7 +447,7 @@ def write_nwb(
         description="NeuroPAL raw volume, axes x, y, z, c",
     )
     nwb.add_acquisition(image)
-    if neurons is not None:
+    if neurons is not None and len(neurons):  # (none: hdmf cannot type an empty name column)
         module = nwb.create_processing_module(name=MODULE_NAME, description="NeuroPAL neurons")
         seg = ImageSegmentation(name=SEGMENTATION_NAME)
         module.add(seg)
