@@ -1337,3 +1337,24 @@ def test_the_writer_leaves_out_neuropal_id_voxel_coordinates_when_it_writes_its_
     df = pd.read_csv(out, keep_default_na=False)
     assert not {"Internal X (px)", "Internal Z (slice)"} & set(df.columns), list(df.columns)
     assert list(df["x_px"]) == [20.0, 25.0]
+
+
+def test_a_neuropal_id_table_opens_on_its_voxels_and_a_moved_point_is_saved_with_new_ones(tmp_path):
+    """A NeuroPAL_ID table gives its voxel coordinates (1-based 'Internal X (px)') beside µm:
+    it opens scaled by that voxel size, like our tables with x_px, so a point moved is saved
+    with voxel coordinates of where it is now. It opened unscaled, and a point moved was saved
+    with its old 'Internal X (px)' beside its new position."""
+    from napari_fdlc._napari._io import get_table_reader
+
+    xyz = np.array([[5.0, 2.5, 3.0], [9.0, 4.0, 6.0], [12.5, 7.25, 10.5]])
+    path = tmp_path / "npid.csv"
+    write_neuropal_id(NeuronTable(xyz, labels=np.array(["AVAL", "AVAR", "RIAL"], dtype=object)), path,
+                      voxel_size_zyx=(1.5, 0.25, 0.25))
+    data, kwargs, _ = get_table_reader(str(path))(str(path))[0]
+    assert tuple(kwargs["scale"]) == (1.5, 0.25, 0.25)
+    np.testing.assert_allclose(data * kwargs["scale"], xyz[:, ::-1])
+    data[0, 2] += 8  # moved 2 µm along x
+    [out] = write_neuron_csv(str(tmp_path / "saved.csv"), data, kwargs)
+    df = pd.read_csv(out, keep_default_na=False)
+    assert "Internal X (px)" not in df.columns
+    assert df["x_px"][0] == pytest.approx(xyz[0, 0] / 0.25 + 8) and df["x_um"][0] == pytest.approx(7.0)

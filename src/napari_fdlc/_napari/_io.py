@@ -236,16 +236,30 @@ def _points_over_time(table, voxel) -> tuple:
     return np.column_stack([t, data]), kwargs, kind
 
 
+# Voxel coordinates written beside µm: ours (0-based), NeuroPAL_ID's (1-based, to 3 decimals:
+# a neuron within 2 voxels of the first tells its size too roughly)
+_VOXEL_COLUMNS = ((("x_px", "y_px", "z_px"), 0.0, 1e-6),
+                  (("Internal X (px)", "Internal Y (px)", "Internal Z (slice)"), 1.0, 2.0))
+
+
 def _voxel_from_columns(table) -> tuple | None:
-    """Voxel size from ``x_px, y_px, z_px`` columns written beside µm (our exports): lets the
-    points sit on image planes exactly like the stack's."""
-    cols = table.extra.columns
-    if not all(c in cols for c in ("x_px", "y_px", "z_px")):
+    """Voxel size from voxel coordinates written beside µm (our ``x_px, y_px, z_px``,
+    NeuroPAL_ID's ``Internal X (px)``): lets the points sit on image planes exactly like the
+    stack's, and a point moved is saved with its voxel coordinates written anew."""
+    for columns, first, nearest in _VOXEL_COLUMNS:
+        size = _voxel_size_of(table, columns, first, nearest)
+        if size is not None:
+            return size
+    return None
+
+
+def _voxel_size_of(table, columns, first: float, nearest: float) -> tuple | None:
+    if not all(c in table.extra.columns for c in columns):
         return None
     size = []
-    for um, px in ((2, "z_px"), (1, "y_px"), (0, "x_px")):
-        v = pd.to_numeric(table.extra[px], errors="coerce").to_numpy(dtype=float)
-        ok = np.isfinite(v) & (np.abs(v) > 1e-6)
+    for um, px in zip((2, 1, 0), columns[::-1]):
+        v = pd.to_numeric(table.extra[px], errors="coerce").to_numpy(dtype=float) - first
+        ok = np.isfinite(v) & (np.abs(v) >= nearest)
         if not ok.any():
             return None
         ratio = table.xyz[ok, um] / v[ok]
