@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import pytest
+import functools
 
 
 def test_demo_with_demo_output_a_file_is_one_line(tmp_path):
@@ -31,3 +32,103 @@ def test_demo_without_napari_is_one_line(tmp_path):
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1, (proc.returncode, proc.stderr)
     assert "is missing" in proc.stderr and "napari-fdlc[napari]" in proc.stderr, proc.stderr
+
+
+def test_demo_flow_command_bad_out_dir_is_one_line(tmp_path):
+    """docs/gui.md: `python -m napari_fdlc._napari.demo_flow OUT_DIR [--headless]`. With an
+    OUT_DIR that cannot be made (a file is in the way) it should say so in one line and exit
+    non-zero, as `make demo` does. Instead demo_flow.main lets run_demo's FdlcError out: a
+    Python traceback."""
+    pytest.importorskip("napari")
+    (tmp_path / "afile").write_text("x")
+    env = dict(os.environ, FDLC_SESSION_DIR=str(tmp_path / "sessions"))
+    proc = subprocess.run([sys.executable, "-m", "napari_fdlc._napari.demo_flow", str(tmp_path / "afile" / "out"),
+                           "--headless"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip().count("\n") == 0 and "afile" in proc.stderr, proc.stderr
+
+
+def test_interactive_demo_needs_no_output_folder(tmp_path, monkeypatch):
+    """`make demo` with a display opens napari for a person; it writes nothing to demo_output
+    (README: only the run without a display writes demo_output/labels.csv and screenshot.png).
+    It should open napari whether or not ./demo_output can be made (a read-only checkout, a
+    file named demo_output). Instead run_demo makes the folder first even when not headless,
+    and refuses to open napari at all when it cannot ('cannot make the demo's output folder')."""
+    napari = pytest.importorskip("napari")
+    from napari_fdlc._napari import demo_flow
+
+    class FakeViewer:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(napari, "Viewer", FakeViewer)
+    monkeypatch.setattr(napari, "run", lambda *a, **k: None)
+    monkeypatch.setattr(demo_flow, "open_sample_with_widget", lambda *a, **k: object())
+    (tmp_path / "afile").write_text("x")
+    out = tmp_path / "afile" / "demo_output"  # cannot be made, as in a folder the user may not write
+    assert demo_flow.run_demo(out, headless=False) is None
+    assert (tmp_path / "afile").read_text() == "x"
+
+
+def test_demo_opens_napari_on_a_desktop_without_DISPLAY(monkeypatch, capsys):
+    """On macOS and Windows a desktop has no DISPLAY variable, yet napari opens there (the GUI
+    tests' conftest only asks for DISPLAY on Linux). `make demo` there should open napari
+    (run_demo with headless=False). Instead demo.main treats every platform as X11: it prints
+    'No display and no Xvfb: skipped the napari part' and never opens napari."""
+    pytest.importorskip("napari")
+    from napari_fdlc import demo
+    from napari_fdlc._napari import demo_flow
+
+    calls = []
+    monkeypatch.setattr(demo_flow, "run_demo", lambda out, headless, **k: calls.append(headless))
+    monkeypatch.setattr(demo, "identify_sample", lambda *a, **k: 0.0)
+    monkeypatch.setattr(demo.shutil, "which", lambda name: None)
+    for var in ("DISPLAY", "WAYLAND_DISPLAY", "FDLC_NO_GUI"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setattr(sys, "platform", "darwin")
+    assert demo.main([]) == 0
+    assert calls == [False], capsys.readouterr().out
+
+
+@pytest.mark.skipif(not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")),
+                    reason="needs an X server (run under xvfb-run -a)")
+def test_headless_demo_screenshot_not_writable_is_one_line(tmp_path, monkeypatch, capsys):
+    """`make demo` without a display where demo_output/screenshot.png cannot be written (here a
+    folder of that name; likewise a full disk or a read-only file): one line 'fdlc: error: ...'
+    and exit 2, as for a demo_output that cannot be made. Instead save_screenshot's OSError
+    (IsADirectoryError) escapes demo.main as a traceback, after labels.csv was written."""
+    pytest.importorskip("napari")
+    torch = pytest.importorskip("torch")
+    from napari_fdlc import demo
+    from napari_fdlc._napari import demo_flow
+    from napari_fdlc.identify import Identifier
+    from napari_fdlc.model import CorrespondenceModel
+    from napari_fdlc.reference import generate_worm
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    identifier = Identifier(CorrespondenceModel({"layers": 1, "dim": 32}), device="cpu")  # small and quick
+    monkeypatch.setattr(demo_flow, "run_demo", functools.partial(
+        demo_flow.run_demo, identifier=identifier, templates=[generate_worm(seed=3)]))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("FDLC_NO_GUI", raising=False)
+    (tmp_path / "demo_output" / "screenshot.png").mkdir(parents=True)
+    try:
+        rc = demo.main(["--headless"])
+    except OSError as exc:
+        pytest.fail(f"traceback shown to the user: {type(exc).__name__}: {exc}")
+    err = capsys.readouterr().err
+    assert rc == 2 and "screenshot.png" in err and err.strip().count("\n") == 0, (rc, err)
+
+
+def test_demo_help_does_not_run_the_demo(capsys):
+    """`python -m napari_fdlc.demo --help` printed nothing of use and ran the whole demo (every
+    argument but --headless was ignored); an unknown argument is refused."""
+    from napari_fdlc import demo
+
+    assert demo.main(["--help"]) == 0 and "usage" in capsys.readouterr().out
+    assert demo.main(["--headles"]) == 2 and "--headles" in capsys.readouterr().err

@@ -62,13 +62,22 @@ def identify_sample(show: int = 15) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    usage = "usage: python -m napari_fdlc.demo [--headless]  (make demo: the sample labelled, then napari)"
+    if any(a in ("-h", "--help") for a in argv):
+        print(usage)
+        return 0
+    unknown = [a for a in argv if a != "--headless"]
+    if unknown:  # (it ran the whole demo, --help included)
+        print(f"{usage}\nfdlc: error: unknown argument {unknown[0]!r}", file=sys.stderr)
+        return 2
     headless = "--headless" in argv
     try:
         if not headless:
             identify_sample()
         if os.environ.get("FDLC_NO_GUI"):
             return 0
-        has_display = bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+        # (a macOS or Windows desktop has no DISPLAY variable: napari opens there all the same)
+        has_display = not sys.platform.startswith("linux") or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
         if headless or has_display:
             try:
                 from ._napari.demo_flow import run_demo

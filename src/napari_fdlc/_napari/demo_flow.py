@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FdlcError, atomic_write
+from ..errors import FdlcError, atomic_write, one_line
 from ._widget import camera
 
 WINDOW_SIZE = (1500, 950)
@@ -36,11 +36,12 @@ def run_demo(
     import napari
 
     out_dir = Path(out_dir)
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise FdlcError(f"{out_dir}: cannot make the demo's output folder there ({exc.strerror or exc}); "
-                        "move what is in the way or run from another folder") from None
+    if headless:  # (napari for a person writes nothing there: a read-only checkout opens it too)
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise FdlcError(f"{out_dir}: cannot make the demo's output folder there ({exc.strerror or exc}); "
+                            "move what is in the way or run from another folder") from None
     old_env = os.environ.get("FDLC_SESSION_DIR")
     if headless:
         os.environ["FDLC_SESSION_DIR"] = str(out_dir / "sessions")
@@ -60,10 +61,13 @@ def run_demo(
                 raise FdlcError(widget.last_error or "auto-label failed")
             if threshold is not None:
                 widget.set_threshold(threshold)
-            labels = widget.export(out_dir / "labels.csv", overwrite=True)
             show_labelled_plane(viewer, layer)
             shot = out_dir / "screenshot.png"
-            save_screenshot(viewer, shot)
+            try:  # first: one that cannot be written leaves no new labels beside an old picture
+                save_screenshot(viewer, shot)
+            except OSError as exc:
+                raise FdlcError(f"{shot}: cannot be written ({exc.strerror or exc})") from None
+            labels = widget.export(out_dir / "labels.csv", overwrite=True)
             return labels, shot
         finally:
             viewer.close()
@@ -158,21 +162,29 @@ def docs_screenshot(path: str | os.PathLike, *, identifier=None, templates=None,
     return path
 
 
-def main() -> None:  # python -m napari_fdlc._napari.demo_flow OUT [--headless | --docs-screenshot PNG]
+def main(argv: list[str] | None = None) -> int:  # python -m napari_fdlc._napari.demo_flow OUT [--headless | --docs-screenshot PNG]
     import argparse
+    import sys
+
+    from ..demo import OUT_DIR
 
     parser = argparse.ArgumentParser(description="napari-fdlc demo on the bundled sample")
-    parser.add_argument("out_dir", nargs="?", default="demo_out")
+    parser.add_argument("out_dir", nargs="?", default=str(OUT_DIR))
     parser.add_argument("--headless", action="store_true")
     parser.add_argument("--docs-screenshot", metavar="PNG", help="write the screenshot of docs/gui.md and exit")
-    args = parser.parse_args()
-    if args.docs_screenshot:
-        print(docs_screenshot(args.docs_screenshot))
-        return
-    result = run_demo(args.out_dir, args.headless)
+    args = parser.parse_args(argv)
+    try:
+        if args.docs_screenshot:
+            print(docs_screenshot(args.docs_screenshot))
+            return 0
+        result = run_demo(args.out_dir, args.headless)
+    except (FdlcError, OSError) as exc:
+        print(f"fdlc: error: {one_line(exc)}", file=sys.stderr)
+        return 2
     if result:
         print("\n".join(str(p) for p in result))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())
