@@ -44,7 +44,7 @@ def run_demo(
                             "move what is in the way or run from another folder") from None
     old_env = os.environ.get("FDLC_SESSION_DIR")
     if headless:
-        os.environ["FDLC_SESSION_DIR"] = str(out_dir / "sessions")
+        os.environ["FDLC_SESSION_DIR"] = str((out_dir / "sessions").resolve())  # (cached by its text)
     try:
         viewer = napari.Viewer(show=not headless, title="napari-fdlc demo")
         try:
