@@ -5,6 +5,7 @@ from napari_fdlc.errors import FdlcError, ModelError
 from napari_fdlc.reference import (Atlas, atlas_worm, build_atlas, generate_worm, load_atlas, load_panel, make_panel,
                                    shipped_atlas_path)
 from napari_fdlc.table import NeuronTable
+from napari_fdlc.corpus import Worm
 
 
 def test_shipped_atlas_and_panel():
@@ -294,3 +295,23 @@ def test_adapted_colours_are_not_measured_on_cells_without_a_reading():
     assert adapted.colour[k, 0] == pytest.approx(atlas.colour[k, 0]) and adapted.colour_sd[k, 0] > 0, (
         f"AVAL's R, read in none of the tests, measured as {adapted.colour[k, 0]:.3f} +- "
         f"{adapted.colour_sd[k, 0]:.3f} (atlas: {atlas.colour[k, 0]:.3f} +- {atlas.colour_sd[k, 0]:.3f})")
+
+
+def test_a_name_given_twice_in_one_worm_does_not_count_as_two_worms():
+    """Expected: build_atlas keeps "names seen in at least min_frequency of the worms, and in two
+    worms at least" (reference.py, docs/cli.md `fdlc atlas`), and ``frequency`` is the fraction
+    of worms that name it; a name that only one worm gives (twice, an annotation slip) is not
+    kept.
+    Actual: the positions of a name are counted, not the worms: the name given twice in one
+    worm of three is kept, with frequency 2/3 and a spread measured between two neurons of
+    that one worm."""
+    worms = [generate_worm(seed=s) for s in range(3)]
+    first = worms[0]
+    xyz = np.vstack([first.xyz, first.xyz[:2] + 3.0])
+    colours = {c: np.concatenate([v, v[:2]]) for c, v in first.colours.items()}
+    labels = np.concatenate([first.labels, ["XYZ", "XYZ"]])
+    twice = NeuronTable(xyz, colours, labels)
+    atlas = build_atlas([Worm("A", "w0", twice), Worm("A", "w1", worms[1]), Worm("B", "w2", worms[2])])
+    names = list(atlas.names)
+    assert "XYZ" not in names, (f"XYZ, named by 1 worm of {atlas.worms}, kept with frequency "
+                                f"{atlas.frequency[names.index('XYZ')]:.2f}")

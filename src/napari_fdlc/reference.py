@@ -45,7 +45,7 @@ from .colour import IDENTITY_CHANNELS, has_colour, normal_scores
 from .errors import FdlcError, ModelError, atomic_write
 from .geometry import canonical_frame
 from .register import Mixture, Placement, posterior, register
-from .table import NeuronTable
+from .table import NeuronTable, with_unique_names
 
 ATLAS_NAME = "atlas.csv"
 # The built-in panel: the mean worm plus PANEL_SAMPLES worms sampled at PANEL_SPREAD times the
@@ -226,7 +226,9 @@ def _read_scores(table: NeuronTable) -> np.ndarray:
 
 def build_atlas(worms, min_frequency: float = 0.2, rounds: int = 3) -> Atlas:
     """Statistical atlas from labelled worms (a list of :class:`napari_fdlc.corpus.Worm`)."""
-    tables = [w.table for w in worms]
+    # a name given twice in a worm (an annotation slip) on none of its rows, as the readers
+    # do: counted once per neuron, it made one worm count as two (on a copy: the caller's kept)
+    tables = [with_unique_names(w.table.subset(np.arange(len(w.table))), say=False) for w in worms]
     if not tables:
         raise FdlcError("no worms to build an atlas from")
     canon = [canonical_frame(t.xyz)[0] for t in tables]
