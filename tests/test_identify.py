@@ -17,6 +17,7 @@ from napari_fdlc.identify import FEW_NEURONS, Identifier, default_identifier, la
 from napari_fdlc.model import CorrespondenceModel
 from napari_fdlc.reference import generate_worm, load_atlas, load_panel
 from napari_fdlc.table import NeuronTable
+from napari_fdlc.identify import AtlasView, InferenceSettings
 
 
 SEEDS = (3, 4, 5, 6)
@@ -1019,3 +1020,29 @@ def test_label_panel_many_takes_first_answers_made_with_the_handedness_given(shi
     except FdlcError:
         return
     assert len(results) == len(tests)
+
+
+def test_averaging_in_the_atlas_worm_answer_keeps_a_probability_distribution():
+    """With a template, the model's answer against the atlas's mean worm is *averaged* into the
+    template's answer at ``atlas_worm_weight`` (docs/cli.md, model_card.md); a name the atlas
+    does not know "keeps the template's own probability (no opinion)". A mixture of two answers
+    should still be a probability per neuron: names summing to at most 1, the rest "no named
+    match".
+
+    Instead ``Identifier._atlas_worm_answer`` copies the template's probability of the unknown
+    name (0.85) next to the atlas worm's full answer over its own names (A 0.9), a row summing
+    to 1.75, and the average sums to 1.33: the neuron's "no named match" share (0.10 in the
+    template's answer, 0.05 in the atlas worm's) is gone (with the shipped atlas_weight > 0,
+    ``_times`` clips it to 0 before the product and renormalises)."""
+    identifier = Identifier(None, InferenceSettings(atlas_weight=0.0, atlas_weight_position=0.0,
+                                                    atlas_worm_weight_position=0.5))
+    worm = NeuronTable(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]]), labels=np.array(["A", "B"], dtype=object))
+    test = NeuronTable(np.array([[0.0, 0.0, 1.0]]))
+    worm_log_p = np.log(np.array([[0.9, 0.05, 0.05]]))  # A, B, no match
+    view = AtlasView(None, None, worm, worm_log_p)
+    names = ["A", "X"]  # X: a template name the atlas does not know
+    template_answer = np.array([[0.05, 0.85]])  # no named match: 0.10
+    probs, assign_probs, joined = identifier._join_atlas(test, names, template_answer, template_answer.copy(), False, view)
+    assert joined
+    assert probs.sum(axis=1).max() <= 1 + 1e-9, probs
+    assert assign_probs.sum(axis=1).max() <= 1 + 1e-9, assign_probs

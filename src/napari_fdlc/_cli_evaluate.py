@@ -206,6 +206,11 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
         with atomic_write(out, "w", encoding="utf-8") as handle:
             handle.write("# Accuracy on the annotated corpus\n\n")
             handle.write(f"Made by `{command}` ({minutes:.1f} min). See docs/benchmarks.md for how to read it.\n\n")
+            handle.write("top-1: the name assigned (`auto_id`) is the annotated one; top-3: the annotated name "
+                         "is among `cand_1..3`, the review's three candidates. Names are assigned one-to-one on "
+                         "the answer before its temperature and, on the panel, before the other handedness is "
+                         "mixed in (neuron_table.md: `auto_id` need not be `cand_1`), so a name assigned right "
+                         "can lie outside them.\n\n")
             handle.write(report + (f"\n\n![reliability]({quote(plot)})\n" if plotted else "\n"))  # a name with spaces
     return report
 

@@ -767,7 +767,9 @@ class Identifier:
         the test placed in the atlas's frame against the atlas's mean worm (``view``, from
         :meth:`_atlas_views`), in the template's ``names`` (N, names): a name the atlas lacks
         keeps the template's own probability (no opinion); what the atlas gives names the
-        template lacks is "no named match"."""
+        template lacks is "no named match". The atlas's part shares what the names it lacks
+        leave of each row, so that the answer stays a probability (the two side by side summed
+        up to ~2: averaged in, a neuron's "no named match" share was gone)."""
         worm, log_p = view.worm, view.worm_log_p
         colour = self._colour_evidence(worm, test, self._takes_colour([worm, test], use_colour)) if use_colour else None
         column = {n: i for i, n in enumerate(worm.labels)}
@@ -776,7 +778,8 @@ class Identifier:
         out = []
         for calibrated, own in ((True, probs), (False, assign_probs)):
             answer = own.copy()
-            answer[:, known] = self._answer(log_p, colour, calibrated)[:, rows]
+            left = np.clip(1 - own[:, ~known].sum(axis=1, keepdims=True), 0, 1)
+            answer[:, known] = left * self._answer(log_p, colour, calibrated)[:, rows]
             out.append(answer)
         return out
 
