@@ -13,7 +13,8 @@ setup: $(STAMP)
 
 $(STAMP): pyproject.toml constraints.txt
 	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "Python >= 3.11 is needed"' || { echo "napari-fdlc needs Python >= 3.11 (set PYTHON=...)"; exit 1; }
-	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@# a venv left without pip (python3-venv missing the first time) is made again
+	$(PY) -m pip --version >/dev/null 2>&1 || $(PYTHON) -m venv --clear $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -c constraints.txt -e '.[napari,test]'
 	touch $(STAMP)
@@ -41,4 +42,4 @@ demo: setup xvfb
 	$(PY) -m napari_fdlc.demo
 
 clean:
-	rm -rf $(VENV) build *.egg-info demo_output
+	rm -rf $(VENV) build src/*.egg-info demo_output

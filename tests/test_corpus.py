@@ -83,4 +83,24 @@ def test_fdlc_corpus_pointing_at_no_corpus_is_not_replaced_by_another(tmp_path, 
 
 
 
+def test_default_corpus_lookup_survives_a_shallow_install(tmp_path, monkeypatch, capsys):
+    """`fdlc atlas --out atlas.csv` without --corpus on a package installed at a shallow path
+    (``pip install --target /opt`` → /opt/napari_fdlc/corpus.py, or a container's
+    PYTHONPATH=/app) should end with the one-line "NeuroPAL corpus not found: pass --corpus
+    PATH ..." and exit code 2. Instead corpus.default_corpus_path takes
+    ``Path(__file__).resolve().parents[3]`` (the source checkout's layout), which does not exist
+    there: an IndexError traceback escapes cli.main."""
+    from napari_fdlc import corpus
+    from napari_fdlc.cli import main
 
+    monkeypatch.delenv("FDLC_CORPUS", raising=False)
+    monkeypatch.setattr(corpus, "__file__", "/opt/napari_fdlc/corpus.py")  # where --target /opt puts it
+    work = tmp_path / "a" / "work"
+    work.mkdir(parents=True)
+    monkeypatch.chdir(work)  # ../shared/data/neuropal_corpus is not there either
+    try:
+        code = main(["atlas", "--out", str(tmp_path / "atlas.csv")])
+    except IndexError as exc:
+        pytest.fail(f"IndexError escaped `fdlc atlas` ({exc}) instead of 'NeuroPAL corpus not found'")
+    assert code == 2
+    assert "corpus not found" in capsys.readouterr().err

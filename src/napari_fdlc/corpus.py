@@ -38,7 +38,9 @@ def default_corpus_path() -> Path | None:
             raise FdlcError(f"FDLC_CORPUS={path}: no worms.csv there (set it to the corpus folder, or unset it)")
         return path
     candidates = [Path.cwd().parent / "shared/data/neuropal_corpus"]
-    candidates.append(Path(__file__).resolve().parents[3] / "shared/data/neuropal_corpus")
+    parents = Path(__file__).resolve().parents
+    if len(parents) > 3:  # the source checkout's ../shared (installed at /opt/napari_fdlc: none)
+        candidates.append(parents[3] / "shared/data/neuropal_corpus")
     for path in candidates:
         if (path / "worms.csv").exists():
             return path
