@@ -12,6 +12,7 @@ import pytest
 from napari_fdlc.errors import FdlcError
 from napari_fdlc.review import find_session, session_file_for, user_session_dir
 from napari_fdlc.table import read_table
+import shutil
 
 REVIEW_FEATURES = [
     "auto_id", "auto_conf", "cand_1", "cand_2", "cand_3", "prob_1", "prob_2", "prob_3",
@@ -555,3 +556,134 @@ def test_points_of_another_time_point_are_refused_by_auto_label(make_napari_view
     widget.set_neurons("clicked at t=2")
     with pytest.raises(FdlcError, match="first time point"):
         widget.auto_label()
+
+
+def _images(viewer):
+    from napari_fdlc._napari._layers import is_image_layer
+
+    return [layer for layer in viewer.layers if is_image_layer(layer)]
+
+
+def test_auto_label_again_after_the_time_axis_moved_moves_the_reused_layer(make_napari_viewer, moving_recording,
+                                                                           identifier, templates, tmp_path):
+    """Auto-label on a recording, then the recording's time axis is shifted (its layers'
+    translate in t set to 10: the recording starts at t = 10) and Auto-label is run again: the
+    session stores time_axis [1, 10] and the reused neuron-ID layer should lie at t = 10, the
+    recording's first time point. Instead _refresh_layer updates the layer's scale but never its
+    translate: the names stay at t = 0, where there is no frame of the recording."""
+    path = tmp_path / "moving.ome.tif"
+    shutil.copy(moving_recording, path)
+    viewer, widget = _labelled(make_napari_viewer, path, identifier, templates)
+    layer = widget.auto_label()
+    assert layer is not None, widget.last_error
+    for image in _images(viewer):
+        image.translate = (10.0, 0.0, 0.0, 0.0)
+    again = widget.auto_label()
+    assert again is layer, "the image's neuron-ID layer is reused"
+    assert list(widget.session.settings["time_axis"]) == [1.0, 10.0]
+    assert float(layer.translate[0]) == 10.0, f"neuron-ID layer left at t = {layer.translate[0]:g}"
+
+
+def test_reopening_restores_the_names_on_the_recordings_own_first_time_point(make_napari_viewer, moving_recording,
+                                                                              identifier, templates, tmp_path):
+    """A recording whose layers were shifted in time in napari (translate t = 2) is Auto-labelled
+    (the session keeps time_axis [1, 2]); reopening the file gives the recording's own time
+    axis (translate 0). The restored neuron-ID layer should lie on the recording's first time
+    point, t = 0 (Auto-label named frame 0). Instead restored_session_layer takes the saved
+    time_axis: the names are drawn on frame 2, where the worm has moved 10 µm away."""
+    path = tmp_path / "moving.ome.tif"
+    shutil.copy(moving_recording, path)
+    viewer, widget = _labelled(make_napari_viewer, path, identifier, templates)
+    for image in _images(viewer):
+        image.translate = (2.0, 0.0, 0.0, 0.0)
+    assert widget.auto_label() is not None, widget.last_error
+    assert list(widget.session.settings["time_axis"]) == [1.0, 2.0]
+
+    again = make_napari_viewer()
+    again.open(str(path), plugin="napari-fdlc")
+    image = _images(again)[0]
+    restored = next(layer for layer in again.layers if layer.name.endswith("neuron IDs"))
+    assert restored.ndim == 4
+    assert float(restored.translate[0]) == float(image.translate[0]), (
+        f"names drawn at t = {restored.translate[0]:g}; the recording's first time point is t = {image.translate[0]:g}")
+
+
+def test_a_session_saved_before_names_had_a_time_axis_reopens_on_its_time_point(make_napari_viewer, moving_recording,
+                                                                                 identifier, templates, tmp_path):
+    """docs/gui.md 1: a recording's neuron-ID layer has the recording's time axis, so napari
+    draws the names at the named time point only; reopening the image restores it. A session
+    of a recording saved before today has no settings['time_axis']: reopened, its layer should
+    still have the time axis (the reader knows the file is a recording). Instead it comes back
+    3D and the names of frame 0 are drawn over every frame, on a worm that moved away."""
+    path = tmp_path / "moving.ome.tif"
+    shutil.copy(moving_recording, path)
+    viewer, widget = _labelled(make_napari_viewer, path, identifier, templates)
+    assert widget.auto_label() is not None, widget.last_error
+    saved = widget.session.path
+    d = json.loads(saved.read_text())
+    del d["settings"]["time_axis"]  # as written before the layer had a time axis
+    saved.write_text(json.dumps(d))
+
+    again = make_napari_viewer()
+    again.open(str(path), plugin="napari-fdlc")
+    restored = next(layer for layer in again.layers if layer.name.endswith("neuron IDs"))
+    again.dims.set_point(0, 2)
+    assert restored.ndim == 4 and len(restored._view_indices) == 0, (
+        f"restored {restored.ndim}D: frame 0's names drawn on frame 2 too")
+
+
+def test_edits_made_with_the_dock_closed_are_kept_beside_a_point_at_another_time(make_napari_viewer, moving_recording,
+                                                                                identifier, templates, tmp_path):
+    """docs/gui.md 4: edits made while no widget follows the layer are taken up when it is
+    reviewed again. With the dock closed, a neuron is deleted at the named time point (t = 0)
+    and another point added on frame 2. Docked again, the deletion should be kept and the point
+    on frame 2 refused (as when the dock is open: 'names the recording's first time point').
+    Instead _catch_up hands the whole layer to layer_xyz_um, which refuses it ('holds points of
+    several time points'): the deletion is thrown away with the stray point."""
+    path = tmp_path / "moving.ome.tif"
+    shutil.copy(moving_recording, path)
+    viewer, widget = _labelled(make_napari_viewer, path, identifier, templates)
+    layer = widget.auto_label()
+    assert layer is not None, widget.last_error
+    n = len(widget.session)
+    viewer.window.remove_dock_widget("all")
+    layer.selected_data = {0}
+    layer.remove_selected()
+    assert len(layer.data) == n - 1
+    layer.add(np.r_[2.0, np.asarray(layer.data[0])[1:] + 3])
+    _, widget2 = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    assert widget2.layer is layer
+    assert len(widget2.session) == n - 1, (
+        f"the deletion made with the dock closed was lost ({len(widget2.session)} neurons; last error: "
+        f"{widget2.last_error})")
+
+
+def test_a_recordings_neuron_id_layer_as_neurons_without_an_image_keeps_its_time_axis(
+        make_napari_viewer, moving_recording, identifier, templates, tmp_path):
+    """Two worms in one viewer (docs/gui.md 4): the recording A is Auto-labelled, then worm B.
+    A's neuron-ID layer is then chosen as Neurons with no channel chosen (names from positions
+    and the colours it holds) and Auto-label is run: A's layer should be reused and keep its
+    time axis. Instead the new session has no settings['time_axis'] (no recording among the
+    channels), review_coordinates gives 3D points for the reused 4D layer and napari raises
+    'Points dimensions must be equal to ndim': an 'unexpected error … please report it', the
+    layer left showing the old points while the session (autosaved without its time axis)
+    has the new ones."""
+    from napari_fdlc._napari._layers import stack_layers
+    from napari_fdlc.sample import load_sample
+
+    path = tmp_path / "moving.ome.tif"
+    shutil.copy(moving_recording, path)
+    viewer, widget = _labelled(make_napari_viewer, path, identifier, templates)
+    layer_a = widget.auto_label()
+    assert layer_a is not None, widget.last_error
+    stack, _ = load_sample()
+    for data, kwargs, _ in stack_layers(stack, name="worm B", source_key=str(tmp_path / "worm B.ome.tif")):
+        viewer.add_image(data, **kwargs)
+    widget.set_channels(**{r: f"worm B [{r}]" for r in "RGBW"})
+    layer_b = widget.auto_label()
+    assert layer_b is not None and layer_b is not layer_a, widget.last_error
+    widget.set_channels(**{r: None for r in "RGBW"})
+    widget.set_neurons(layer_a.name)
+    got = widget.auto_label()
+    assert got is layer_a and widget.last_error is None, widget.last_error
+    assert layer_a.ndim == 4 and "time_axis" in widget.session.settings

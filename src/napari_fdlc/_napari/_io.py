@@ -108,7 +108,7 @@ def read_stack_layers(path) -> list[tuple]:
                 layers.append(neurons)
     # Auto-label names a recording's first time point: its session is restored alike
     restored = restored_session_layer(series.source, tuple(series.data.shape[-3:]), voxel_zyx=series.voxel_size_zyx,
-                                      session_file=session_file)
+                                      session_file=session_file, time_axis=(1.0, 0.0) if len(series) > 1 else None)
     if restored is not None:
         layers.append(restored)
     return layers
@@ -159,11 +159,12 @@ def _nwb_neurons(path: str, stack):
 
 
 def restored_session_layer(image_key: str, shape_zyx=None, default_name: str | None = None, voxel_zyx=None,
-                           session_file: tuple | None = None):
+                           session_file: tuple | None = None, time_axis=None):
     """The neuron-ID layer of a saved review session of ``image_key`` (None when there is none
     or it does not fit the image: its shape or voxel size), under the name it was saved with
     (else ``default_name``). ``session_file``: :func:`_saved_session_file`'s answer, when the
-    caller has read it already."""
+    caller has read it already; ``time_axis``: (scale, translate) in t of the recording the image
+    is (its names are drawn at its first time point, also for a session saved without one)."""
     path, session = session_file or _saved_session_file(image_key)
     if path is None:
         return None
@@ -180,7 +181,7 @@ def restored_session_layer(image_key: str, shape_zyx=None, default_name: str | N
         _warn_in_napari(f"{path}: saved for voxels of {tuple(saved_voxel)} µm, not {tuple(voxel_zyx)}; not restored")
         return None
     name = session.settings.get("layer_name") or default_name or f"{_short_name(image_key)}{RESULT_SUFFIX}"
-    return review_points(session, name, {"session": str(path), "image": image_key})
+    return review_points(session, name, {"session": str(path), "image": image_key}, time_axis=time_axis)
 
 
 # ----- neuron tables --------------------------------------------------------------------------

@@ -389,7 +389,17 @@ def review_colours(session) -> np.ndarray:
 def session_time_axis(session) -> tuple[float, float] | None:
     """(scale, translate) of the time axis of the recording a session names a time point of
     (its first frame, data t = 0), None for a stack or a file that says nothing usable."""
-    value = (getattr(session, "settings", None) or {}).get("time_axis")
+    return _time_axis((getattr(session, "settings", None) or {}).get("time_axis"))
+
+
+def layer_time_axis(layer) -> tuple[float, float] | None:
+    """(scale, translate) of a t, z, y, x layer's time axis; None for a 3D layer."""
+    if getattr(layer, "ndim", 3) < 4:
+        return None
+    return _time_axis((layer.scale[-4], layer.translate[-4]))
+
+
+def _time_axis(value) -> tuple[float, float] | None:
     try:
         step, first = (float(v) for v in value)
     except (TypeError, ValueError):
@@ -397,22 +407,24 @@ def session_time_axis(session) -> tuple[float, float] | None:
     return (step, first) if np.isfinite(step) and step > 0 and np.isfinite(first) else None
 
 
-def review_coordinates(session, ndim: int | None = None) -> tuple[np.ndarray, tuple, tuple]:
+def review_coordinates(session, ndim: int | None = None, time_axis=None) -> tuple[np.ndarray, tuple, tuple]:
     """Data coordinates, scale and translate of a session's neuron-ID layer: z, y, x, with a
     leading t (the named time point) for a recording, so that napari draws the names at that
     time point only. ``ndim``: an existing layer's dimensions (one made before names had a time
-    axis stays 3D)."""
+    axis stays 3D); ``time_axis``: (scale, translate) of the recording as shown now, instead of
+    the one the session was made on (a recording opened again starts where its file says)."""
     coords, scale = points_coordinates(session.table.xyz, session.voxel_size_zyx)
-    time_axis = session_time_axis(session)
+    time_axis = _time_axis(time_axis) or session_time_axis(session)
     if time_axis is None or ndim == 3:
         return coords, scale, (0.0,) * 3
     coords = np.column_stack([np.zeros(len(coords)), coords])
     return coords, (time_axis[0], *scale), (time_axis[1], 0.0, 0.0, 0.0)
 
 
-def review_points(session, name: str, metadata: dict | None = None) -> tuple:
-    """Layer data tuple of the result layer for a review session."""
-    coords, scale, translate = review_coordinates(session)
+def review_points(session, name: str, metadata: dict | None = None, time_axis=None) -> tuple:
+    """Layer data tuple of the result layer for a review session (``time_axis``: of the
+    recording it names a time point of, as shown now; see :func:`review_coordinates`)."""
+    coords, scale, translate = review_coordinates(session, time_axis=time_axis)
     features = review_features(session)
     kwargs = {
         "name": name,

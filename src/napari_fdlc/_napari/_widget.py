@@ -83,6 +83,7 @@ from ._layers import (
     _short_name,
     is_image_layer,
     layer_role,
+    layer_time_axis,
     named_count,
     point_size,
     review_colours,
@@ -556,7 +557,8 @@ class AutoLabelWidget(QWidget):
             if _is_points(layer) and meta.get("image") == key and meta.get("session"):
                 return
         restored = restored_session_layer(key, tuple(image_layer.data.shape[-3:]),
-                                          voxel_zyx=tuple(float(v) for v in image_layer.scale[-3:]))
+                                          voxel_zyx=tuple(float(v) for v in image_layer.scale[-3:]),
+                                          time_axis=layer_time_axis(image_layer))
         if restored is not None:
             data, kwargs, _ = restored
             layer = self.viewer.add_points(data, **kwargs)  # inserted -> adopted
@@ -1140,6 +1142,13 @@ class AutoLabelWidget(QWidget):
         else:
             with self._guarded():
                 layer.metadata = {**(layer.metadata or {}), META_KEY: meta}
+                wanted = session_time_axis(session)
+                if wanted is not None and layer.ndim == 4 and not catch_up:  # a new labelling on the image's layer
+                    layer.scale = (wanted[0], *layer.scale[1:])
+                    layer.translate = (wanted[1], *layer.translate[1:])
+        if layer_time_axis(layer) is not None:  # where the names are drawn (e.g. restored on a
+            # recording opened again, or reused by a labelling from positions alone)
+            session.settings["time_axis"] = list(layer_time_axis(layer))
         self.layer = layer
         session.connect(self._on_session)
         layer.events.data.connect(self._on_layer_data)
@@ -1203,7 +1212,7 @@ class AutoLabelWidget(QWidget):
             return
         with self._guarded():
             if structure or len(layer.data) != len(session):
-                coords, scale, _ = review_coordinates(session, layer.ndim)
+                coords, scale, _ = review_coordinates(session, layer.ndim, layer_time_axis(layer))
                 if len(layer.scale) == len(scale) and not np.allclose(layer.scale, scale):
                     # a layer reused after the voxel size changed: its data are in the new voxels
                     layer.scale = scale
@@ -1238,10 +1247,7 @@ class AutoLabelWidget(QWidget):
         if data.ndim == 2 and data.shape[1] == 4 and len(data) and np.any(data[:, 0] != 0):
             # a point added at another time point of the recording: the names are of the first
             self._refresh_layer(structure=True)
-            time_axis = session_time_axis(self.session)
-            first = f" (t = {time_axis[1]:g})" if time_axis else ""
-            raise FdlcError(f"'{self.layer.name}' names the recording's first time point{first}: move the time "
-                            "slider there to add a neuron, or follow neurons over time with the Track widget")
+            raise FdlcError(f"'{self.layer.name}': {self._first_time_point_only()}")
         n_old, n_new = len(self.session), len(data)
         moved = []
         if action == "removed" or n_new < n_old:
@@ -1259,14 +1265,28 @@ class AutoLabelWidget(QWidget):
             moved = [int(i) for i in np.atleast_1d(indices) if 0 <= int(i) < n_new] if indices is not None else []
         self._take_layer(kept, moved, description)
 
+    def _first_time_point_only(self) -> str:
+        time_axis = layer_time_axis(self.layer)
+        first = f" (t = {time_axis[1]:g})" if time_axis else ""
+        return (f"it names the recording's first time point{first}: move the time slider there to add a neuron, "
+                "or follow neurons over time with the Track widget")
+
     def _catch_up(self) -> None:
         """Points added, removed or moved in the session's own layer while no widget followed it
         (the dock closed, another worm under review): the session takes them now, as one
         undoable edit. They were overwritten by the session's table, and in no file. Each point
         carries its session row (feature ``neuron``; a point added has none)."""
         layer, session = self.layer, self.session
-        coords, scale, _ = review_coordinates(session, layer.ndim)
+        coords, scale, _ = review_coordinates(session, layer.ndim, layer_time_axis(layer))
         data = np.asarray(layer.data, dtype=float)
+        stray = np.flatnonzero(data[:, 0] != 0) if data.ndim == 2 and data.shape[1] == 4 else []
+        if len(stray):  # points added at another time point of the recording: refused, the rest taken
+            with self._guarded():
+                layer.selected_data = set(int(i) for i in stray)
+                layer.remove_selected()
+            data = np.asarray(layer.data, dtype=float)
+            self._notify_warning(f"{len(stray)} point(s) added to '{layer.name}' at another time point are left out: "
+                                 f"{self._first_time_point_only()}")
         if "neuron" not in layer.features.columns or data.shape != (len(data), len(scale)) or \
                 not np.allclose(np.asarray(layer.scale, dtype=float), scale):
             return  # not the layer as this session left it: shown afresh
