@@ -1302,3 +1302,145 @@ def test_a_decision_made_while_auto_label_runs_is_not_lost_when_the_layer_is_del
     files = sorted(path.parent.iterdir())
     assert any("accepted" in json.loads(p.read_text())["neurons"]["status"] for p in files), \
         f"the accept made while Auto-label ran is in no session file ({[p.name for p in files]})"
+
+
+def _gate(monkeypatch):
+    """label_neurons held until ``go`` is set (``reached`` once the job got there), so that the
+    user can act while the job runs; the widget's warm-up passes through."""
+    import napari_fdlc.identify as identify
+
+    reached, go = threading.Event(), threading.Event()
+    original = identify.label_neurons
+
+    def gated(table, *args, **kwargs):
+        if table.source != "warm-up":
+            reached.set()
+            go.wait(30)
+        return original(table, *args, **kwargs)
+
+    monkeypatch.setattr(identify, "label_neurons", gated)
+    return reached, go
+
+
+def test_a_voxel_size_set_while_auto_label_runs_does_not_leave_the_neurons_off_their_nuclei(labelled_viewer,
+                                                                                             monkeypatch):
+    """The voxel-size row stays usable while Auto-label runs. Expected: Set is refused while the
+    job runs, or the result is placed at the voxel size the image has when it comes in. Instead
+    the job keeps the voxel size it read and the new neuron-ID layer is drawn at it: with z
+    doubled the neurons lie at half their nuclei's depth, and Set is refused from then on
+    ('holds neurons placed at this image's voxel size')."""
+    viewer, widget = labelled_viewer
+    reached, go = _gate(monkeypatch)
+    widget.auto_label(wait=False)
+    assert reached.wait(60)
+    w = widget._chosen_images()["W"]
+    z, y, x = (float(v) for v in w.scale[-3:])
+    widget.voxel_edit.setText(f"{2 * z} {y} {x}")
+    widget._gui(widget._on_voxel_entered)  # Set, while the job runs
+    go.set()
+    assert widget.wait(60)
+    assert widget.layer is not None, widget.last_error
+    assert np.allclose(widget.layer.scale[-3:], w.scale[-3:]), (
+        f"neuron IDs drawn at voxel size {tuple(widget.layer.scale[-3:])}, the image at {tuple(w.scale[-3:])}")
+
+
+def test_an_error_said_while_auto_label_runs_does_not_turn_its_success_into_a_failure(labelled_viewer):
+    """While Auto-label runs, the user presses Set on a mistyped voxel size ('abc'): refused,
+    said. Expected: the run, which succeeds, ends as a success (bar full, ``auto_label()``
+    returns the layer; last_error says the refusal). Instead the refusal is taken for the job's error:
+    ``auto_label()`` returns None, ``last_error`` is the voxel-size message and the bar stays at
+    0 % beside 'done: … neurons'."""
+    from qtpy.QtCore import QTimer
+
+    viewer, widget = labelled_viewer
+
+    def mistyped():
+        widget.voxel_edit.setText("abc")
+        widget._gui(widget._on_voxel_entered)
+
+    QTimer.singleShot(0, mistyped)  # while auto_label() waits for its job
+    layer = widget.auto_label()
+    assert widget.session is not None and len(widget.session) > 0  # the job did succeed
+    assert layer is not None, widget.last_error
+    assert "voxel size" in (widget.last_error or "")  # the refusal is still the last thing said
+    assert widget.progress_bar.value() == 100, (widget.progress_bar.value(), widget.progress_bar.format())
+
+
+def test_a_re_label_whose_result_is_dropped_does_not_say_done(labelled_viewer, monkeypatch):
+    """Re-label runs; the user deletes a point meanwhile, so its result is dropped (a warning:
+    'the neurons changed while re-labelling; run Re-label again'). Expected: the progress bar
+    does not claim success (as for Auto-label in the same case: an error, bar at 0 %). Instead
+    it reads 'done (100%)' and ``last_error`` is None, so ``relabel()`` returns the layer as if
+    the names had been redone."""
+    viewer, widget = labelled_viewer
+    layer = widget.auto_label()
+    widget.accept(widget.session.review_order()[-1])
+    reached, go = _gate(monkeypatch)
+    widget.relabel(wait=False)
+    assert reached.wait(60)
+    layer.selected_data = {0}
+    layer.remove_selected()  # a false detection deleted while Re-label runs
+    go.set()
+    assert widget.wait(60)
+    assert not (widget.progress_bar.value() == 100 and widget.last_error is None), widget.progress_bar.format()
+
+
+def test_the_session_line_follows_a_move_of_the_autosave_made_by_the_threshold_slider(
+        make_napari_viewer, sample_files, identifier, templates, tmp_path, monkeypatch):
+    """docs/gui.md 5: 'The widget shows the path under the export buttons'. The image's folder
+    stops taking the session (read-only remount); the next save is the slider's, on release, and
+    the session goes on in the user's data folder. Expected: the line under the export buttons
+    names that file. Instead it still names the file beside the image, no longer written."""
+    from napari_fdlc.review import ReviewSession
+
+    path = tmp_path / "worm.ome.tif"
+    shutil.copy(sample_files[0], path)
+    viewer = make_napari_viewer()
+    viewer.open(str(path), plugin="napari-fdlc")
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.identifier = identifier
+    widget.set_templates(templates)
+    assert widget.auto_label() is not None, widget.last_error
+    save = ReviewSession.save
+
+    def read_only(self, p=None):
+        if p is not None and Path(p).parent == tmp_path:
+            raise OSError(errno.EROFS, "Read-only file system")
+        return save(self, p)
+
+    monkeypatch.setattr(ReviewSession, "save", read_only)
+    slider = widget.threshold_slider
+    slider.setSliderDown(True)  # dragged: saved on release
+    slider.setValue(slider.value() + 10)
+    slider.setSliderDown(False)
+    moved = widget.session.path
+    assert moved.parent != tmp_path and moved.is_file()
+    assert str(moved) in widget.session_label.text(), widget.session_label.text()
+
+
+def _template_with(table: NeuronTable, name: str) -> NeuronTable:
+    names = np.array(table.names, dtype=object).copy()
+    names[int(np.flatnonzero(names != "")[0])] = name
+    return NeuronTable(table.xyz, dict(table.colours), names)
+
+
+def test_names_of_a_template_file_are_offered_by_the_name_field_at_once(make_napari_viewer, templates, tmp_path):
+    """docs/gui.md 4: the Name field completes 'over the known neuron names', a labelled table
+    file's included. Expected: once Labelled table file… has added it, its names are offered.
+    Instead the completer's list is only rebuilt by a later edit (_refresh_all), so a name only
+    that file has is not offered (a neuron clicked and a name typed is no edit)."""
+    viewer = make_napari_viewer()
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    path = tmp_path / "my_worm.csv"
+    write_table(_template_with(templates[0], "MYNEURONL").to_dataframe(), path)
+    widget.add_template_file(path)
+    assert "MYNEURONL" in widget._completer.model().stringList()
+
+
+def test_names_of_templates_given_by_script_are_offered_by_the_name_field_at_once(make_napari_viewer, templates):
+    """As above for ``w.set_templates([...])`` (docs/gui.md 7): expected its names in the Name
+    field's completer; they are not, until a later edit."""
+    viewer = make_napari_viewer()
+    _, widget = viewer.window.add_plugin_dock_widget("napari-fdlc", "Auto-label")
+    widget.set_templates([_template_with(templates[0], "OTHERNEURONR")])
+    assert "OTHERNEURONR" in widget._completer.model().stringList()

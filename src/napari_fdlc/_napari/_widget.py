@@ -155,6 +155,7 @@ class AutoLabelWidget(QWidget):
         self._open_sessions = _sessions_shown_in(self.viewer)
         self.identifier = None  # None: the shipped model (napari_fdlc.identify.default_identifier)
         self.last_error: str | None = None
+        self._job_error: str | None = None  # the running (or last) job's own failure
         self._script_templates: list[NeuronTable] | None = None
         self._file_templates: dict[str, NeuronTable] = {}
         self._file_template_paths: dict[str, Path] = {}
@@ -660,6 +661,7 @@ class AutoLabelWidget(QWidget):
             self._script_templates = harmonise(tables, report=self._notify_warning)
         self._known_names = None
         self._refresh_choices()
+        self._refresh_completer()  # their names offered at once, not after the next edit
         self.template_combo.setCurrentText(SCRIPTED if templates is not None else BUILTIN)
 
     def add_template_file(self, path) -> str:
@@ -683,8 +685,9 @@ class AutoLabelWidget(QWidget):
                 name = f"file: {Path(path).parent.name}/{Path(path).name} [{n}]"
         self._file_templates[name] = table
         self._file_template_paths[name] = resolved
-        self._known_names = None  # its names are offered by the Name field's completer
+        self._known_names = None
         self._refresh_choices()
+        self._refresh_completer()  # its names offered at once, not after the next edit
         self.template_combo.setCurrentText(name)
         return name
 
@@ -704,6 +707,7 @@ class AutoLabelWidget(QWidget):
         channels' files (and of the neurons an NWB file holds, on its voxels), e.g. when a file
         does not say it (shown in pixels until then) or says it wrong. Kept by the image's
         session, so that the file opened again takes it."""
+        self._check_idle()  # a labelling running placed its neurons at the size it read
         values = np.array([z, y, x], dtype=float)
         if not (np.all(np.isfinite(values)) and np.all(values > 0)):
             raise FdlcError(f"voxel size {z} {y} {x}: give three positive numbers z y x in µm")
@@ -940,9 +944,8 @@ class AutoLabelWidget(QWidget):
             return lab
 
         def done(labelling):
-            if self.session is not session or session.table is not table:
-                self._notify_warning("the neurons changed while re-labelling; run Re-label again")
-                return
+            if self.session is not session or session.table is not table:  # (was a warning beside "done")
+                raise FdlcError("the neurons changed while re-labelling; run Re-label again")
             session.settings.update({"template": template_text, "colour": use_colour})
             session.set_labelling(labelling, "re-label", fixed_rows=fixed)
             self._status(f"re-labelled ({len(fixed)} of your names fixed)")
@@ -990,7 +993,7 @@ class AutoLabelWidget(QWidget):
     def _start(self, work, done, wait: bool, what: str):
         from napari.qt.threading import create_worker
 
-        self.last_error = None
+        self.last_error = self._job_error = None
         warned: list[str] = []  # what the core warns about in the worker (stderr only), shown when it ends
 
         def guarded_work():
@@ -1014,14 +1017,16 @@ class AutoLabelWidget(QWidget):
                 self._notify_warning(message)
             if isinstance(result, _Failed):
                 self._report_error(result.exc)
+                self._job_error = self.last_error
                 return
             try:
                 done(result)
             except Exception as exc:  # noqa: BLE001 - shown in the widget, never a bare traceback
                 self._report_error(exc)
+                self._job_error = self.last_error
 
         def on_errored(exc):
-            self.last_error = f"unexpected error ({type(exc).__name__}: {exc})"
+            self.last_error = self._job_error = f"unexpected error ({type(exc).__name__}: {exc})"
             self._status(self.last_error)
             self._notify_warning(self.last_error)  # not on the progress bar alone
 
@@ -1037,7 +1042,8 @@ class AutoLabelWidget(QWidget):
         worker.start()
         if wait:
             self.wait()
-            return self.layer if self.last_error is None else None
+            # the job's own outcome: an error said meanwhile (a mistyped voxel size) is not its failure
+            return self.layer if self._job_error is None else None
         return worker
 
     def _set_running(self, running: bool, what: str) -> None:
@@ -1047,7 +1053,7 @@ class AutoLabelWidget(QWidget):
             self.progress_bar.setValue(0)
             self.progress_bar.setFormat(f"{what}…")
         else:
-            self.progress_bar.setValue(100 if self.last_error is None else 0)
+            self.progress_bar.setValue(100 if self._job_error is None else 0)
 
     def _on_progress(self, fraction: float, message: str) -> None:
         self.progress_bar.setValue(int(round(100 * max(0.0, min(1.0, fraction)))))
@@ -1197,6 +1203,7 @@ class AutoLabelWidget(QWidget):
                 meta = (self.layer.metadata or {}).get(META_KEY) or {}
                 with self._guarded():
                     self.layer.metadata = {**(self.layer.metadata or {}), META_KEY: {**meta, "session": str(self.session.path)}}
+            self.session_label.setText(f"Session autosaved to {self.session.path}")  # (a save alone: the slider)
             self._notify_warning(f"the image's folder is no longer writable; the session is saved to {self.session.path}")
             return
         if kind == "current":
@@ -1600,6 +1607,10 @@ class AutoLabelWidget(QWidget):
         self.session_label.setText(f"Session autosaved to {s.path}" if has and s.path else "")
         self._fill_table()
         self._show_current(centre=False)
+        self._refresh_completer()
+
+    def _refresh_completer(self) -> None:
+        """The Name field offers every name known (the panel's, the templates', the session's)."""
         names = self._names()
         model = self._completer.model()
         if hasattr(model, "setStringList") and model.stringList() != names:
