@@ -12,6 +12,8 @@ from napari_fdlc.table import NeuronTable
 import pandas as pd
 from napari_fdlc.cli import main
 from napari_fdlc.table import write_table
+from napari_fdlc.errors import FdlcError
+from napari_fdlc.reference import load_atlas, make_panel
 
 # Generated worms, z mirrored, whose two pieces of evidence (model and registration) both lean
 # mirrored with the shipped model: 7 of them are the fewest the sign test decides on.
@@ -183,3 +185,59 @@ def test_a_copy_with_its_rows_in_another_order_is_not_a_recording_of_its_own():
     a, b = generate_worm(seed=1), generate_worm(seed=2)
     shuffled = NeuronTable(a.xyz[::-1], {c: v[::-1] for c, v in a.colours.items()}, a.labels[::-1])
     assert not can_adapt_colours([a, b, shuffled]), "a reordered copy of A counted as a third recording"
+
+
+def test_match_many_gives_a_full_colour_test_the_same_answer_beside_a_test_without_blue(ident):
+    """Identifier.match_many is documented as ":meth:`match_pair` for many tests against one
+    template, batched". Expected: a test with R, G and B gets the same probabilities beside a
+    test without B (a channel not acquired) as alone. Actual: ``search``/``_model_colours``
+    decide the model's colour input for the whole batch (every test must have R, G, B), so the
+    full-colour test is matched without colour input and with the position-only model's colour
+    weight: its probabilities move by up to ~1.0 and the top candidate of ~98 of its 152 neurons
+    changes. (label_many was fixed by splitting the batch by kind in _label_many; match_many and
+    search, which fdlc track's first volumes go through, still batch them together.)"""
+    template = generate_worm(seed=5)
+    full, no_blue = _test(generate_worm(seed=6), "w6"), _test(generate_worm(seed=7), "w7", channels="RG")
+    alone, _ = ident.match_pair(template, full)
+    beside, _ = ident.match_many(template, [full, no_blue])[0]
+    changed = int((alone.argmax(axis=1) != beside.argmax(axis=1)).sum())
+    moved = float(np.abs(alone - beside).max())
+    assert moved < 1e-4, f"beside a test without B: probabilities moved by {moved:.3f}, {changed} top candidates changed"
+
+
+def test_match_pair_refuses_a_fixed_name_on_a_row_the_test_lacks(ident):
+    """Names the user fixed are checked in every naming path (label, label_panel:
+    match.check_fixed, "a name fixed on a row the test does not have is refused in one line").
+    Expected: Identifier.match_pair (documented to take the user's ``fixed`` row -> name)
+    refuses a row past the test's end with an FdlcError. Actual: the rows are not checked;
+    _agreement_with_fixed indexes the model's answer with it and numpy's IndexError ("index 157
+    is out of bounds for axis 0 with size 152") comes out of the model's scoring."""
+    template = generate_worm(seed=5)
+    test = _test(generate_worm(seed=6), "w6", flip_z=True)
+    with pytest.raises(FdlcError):
+        ident.match_pair(template, test, fixed={len(test) + 5: "ADAL"})
+
+
+def test_adapting_the_colours_keeps_the_callers_panel(ident, monkeypatch):
+    """label_panel_many(adapt_colours=True) measures the colours on the tests and names them
+    again "with a panel drawn from that atlas (positions unchanged)" (docs/cli.md). Expected:
+    the second naming uses the caller's panel (here make_panel(atlas, samples=2): the mean worm
+    and 2 samples) with the colours adapted. Actual: identify.Identifier.label_panel_many calls
+    make_panel(atlas) with the default samples, seed and spread, so the tests are named again
+    against the default 10 templates (the mean worm and 9 samples) the caller never chose (other positions), silently."""
+    from napari_fdlc.identify import Identifier
+
+    panel = make_panel(load_atlas(), samples=2)
+    tests = [_test(generate_worm(seed=s), f"w{s}") for s in (1, 2, 3)]
+    first = [ident.label_panel(t, panel) for t in tests]
+    used = []
+    original = Identifier._label_panel
+
+    def spy(self, test, panel, *args, **kwargs):
+        used.append(len(panel.templates))
+        return original(self, test, panel, *args, **kwargs)
+
+    monkeypatch.setattr(Identifier, "_label_panel", spy)
+    named = ident.label_panel_many(tests, panel, first=first, share_handedness=False, adapt_colours=True)
+    assert named[0].info.get("adapted_colours"), "the setting: colours adapted"
+    assert set(used) == {len(panel.templates)}, f"named again against {sorted(set(used))} templates, not the caller's {len(panel.templates)}"

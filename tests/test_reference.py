@@ -315,3 +315,23 @@ def test_a_name_given_twice_in_one_worm_does_not_count_as_two_worms():
     names = list(atlas.names)
     assert "XYZ" not in names, (f"XYZ, named by 1 worm of {atlas.worms}, kept with frequency "
                                 f"{atlas.frequency[names.index('XYZ')]:.2f}")
+
+
+def test_a_panel_of_templates_given_by_hand_follows_its_atlas_colours_with_positions_kept():
+    """A panel made by hand (not make_panel) drawn again on an atlas whose colours were
+    measured anew (label_panel_many's adapted colours): its own templates, positions unchanged,
+    each name's colour moved as the atlas's moved; make_panel's panel is drawn again alike."""
+    from dataclasses import replace
+
+    from napari_fdlc.reference import Panel, load_atlas, make_panel, panel_on
+
+    atlas = load_atlas()
+    shifted = replace(atlas, colour=atlas.colour + np.array([0.5, 0.0, -0.25]))
+    worm = generate_worm(seed=3)
+    again = panel_on(Panel(atlas, [worm]), shifted)
+    [t] = again.templates
+    np.testing.assert_array_equal(t.xyz, worm.xyz)
+    named = np.isin(worm.labels, atlas.names)
+    np.testing.assert_allclose(t.colours["R"][named], worm.colours["R"][named] + 0.5)
+    np.testing.assert_allclose(t.colours["B"][named], worm.colours["B"][named] - 0.25)
+    assert len(panel_on(make_panel(atlas, samples=2), shifted).templates) == 3

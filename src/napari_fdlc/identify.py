@@ -446,8 +446,15 @@ class Identifier:
         """:meth:`match_pair` for many tests against one template, batched through the model
         (many volumes per second instead of one forward pass per volume). ``info["assign_probs"]``
         is the same answer without the temperature: what the names are assigned on."""
+        if tests:  # checked (rows, names as read) as label does: a row past a test's end was an IndexError
+            fixed = check_fixed(fixed, min(len(t) for t in tests)) or None
+        split = self._alike_in_colour_input(template, tests, use_colour,
+                                            lambda part: self.match_many(template, part, use_colour, fixed))
+        if split is not None:
+            return split
         found, model_saw_colour = self.search(template, tests, use_colour)
-        colours = [self._colour_evidence(template, test, model_saw_colour) if use_colour else None for test in tests]
+        colours = [self._colour_evidence(template, test, saw) if use_colour else None
+                   for test, saw in zip(tests, model_saw_colour)]
         agreements, rechosen = [], []
         for k, f in enumerate(found):
             agreements.append(_agreement_with_fixed([f["all_log_p"]], [template], fixed))
@@ -515,13 +522,31 @@ class Identifier:
         every candidate pose through the model in one batch, the choice, ``refine_steps``
         refinements. Returns the per-test results of :meth:`_align` (plus ``mirrored``, the
         candidates' flags, and ``template_xyz``, the template in the frame they were placed in) and whether the model took colour. ``fdlc label`` and the first
-        volume of ``fdlc track`` both start here."""
+        volume of ``fdlc track`` both start here. Whether the model took colour, per test."""
+        split = self._alike_in_colour_input(template, tests, use_colour,
+                                            lambda part: list(zip(*self.search(template, part, use_colour, refine_steps))))
+        if split is not None:
+            return [f for f, _ in split], [saw for _, saw in split]
         a, starts, mirrored, priors = self.place(template, tests, use_colour)
         tc, sc = self._model_colours(template, tests, use_colour)
         found = self._align(a, starts, refine_steps, tc, sc, prior=priors)
         for f, flags in zip(found, mirrored):
             f["mirrored"], f["template_xyz"] = flags, a
-        return found, tc is not None
+        return found, [tc is not None] * len(tests)
+
+    def _alike_in_colour_input(self, template: NeuronTable, tests: list[NeuronTable], use_colour: bool, run):
+        """None when the model takes colour for every test or for none (one batch); else the
+        answers of ``run`` (tests -> one answer each) on each kind of test apart, in the tests'
+        order: one test without B took the colour input from all of them."""
+        takes = [self._takes_colour([template, test], use_colour) for test in tests]
+        if len(set(takes)) < 2:
+            return None
+        out: list = [None] * len(tests)
+        for kind in (True, False):
+            rows = [k for k, t in enumerate(takes) if t == kind]
+            for k, answer in zip(rows, run([tests[k] for k in rows])):
+                out[k] = answer
+        return out
 
     def _answer(self, log_p: np.ndarray, colour: np.ndarray | None, calibrated: bool = True) -> np.ndarray:
         """The model's log p for one placement -> probabilities (N, M + 1), fused with the
@@ -901,7 +926,7 @@ class Identifier:
             results = self._shared_handedness(tests, panel, use_colour, results)
         if not (adapt_colours and can_adapt_colours(tests, use_colour)):
             return results
-        from .reference import make_panel
+        from .reference import panel_on
 
         counted = _counted_recordings(tests)  # a tiny test or a copy measures nothing of its own
         names = [np.where((np.asarray(r.auto_conf) >= ADAPT_MIN_CONF) & c, np.asarray(r.auto_id, dtype=object), "")
@@ -914,7 +939,7 @@ class Identifier:
         batch = results[0].info.get("batch_handedness") if results else None
         decided = batch["decided"] if batch else None
         again = self.with_chirality(decided) if decided else self
-        results = again.label_panel_many(tests, make_panel(atlas), use_colour, share_handedness=share_handedness)
+        results = again.label_panel_many(tests, panel_on(panel, atlas), use_colour, share_handedness=share_handedness)
         for r in results:
             r.info["adapted_colours"] = adapted
             if decided:

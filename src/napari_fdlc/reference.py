@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -354,6 +354,9 @@ class Panel:
 
     atlas: Atlas
     templates: list[NeuronTable]
+    # (samples, seed, spread) of make_panel: drawn again alike from an atlas whose colours were
+    # adapted; None for templates given by hand
+    recipe: tuple | None = field(default=None, compare=False)
 
     @property
     def names(self) -> set[str]:
@@ -362,7 +365,25 @@ class Panel:
 
 def make_panel(atlas: Atlas, samples: int = PANEL_SAMPLES, seed: int = PANEL_SEED, spread: float = PANEL_SPREAD) -> Panel:
     rng = np.random.default_rng(seed)
-    return Panel(atlas, [atlas_worm(atlas)] + [atlas_worm(atlas, rng, spread=spread) for _ in range(samples)])
+    return Panel(atlas, [atlas_worm(atlas)] + [atlas_worm(atlas, rng, spread=spread) for _ in range(samples)],
+                 recipe=(samples, seed, spread))
+
+
+def panel_on(panel: Panel, atlas: Atlas) -> Panel:
+    """``panel`` drawn again from ``atlas`` (the same atlas with its colours measured anew):
+    the same draws for a panel make_panel made, else its own templates with each name's colour
+    moved as the atlas's moved (positions unchanged)."""
+    if panel.recipe is not None:
+        return make_panel(atlas, *panel.recipe)
+    row = {n: i for i, n in enumerate(panel.atlas.names)}
+    moved = {n: atlas.colour[i] - panel.atlas.colour[row[n]] for i, n in enumerate(atlas.names) if n in row}
+    templates = []
+    for t in panel.templates:
+        shift = np.array([moved.get(n, np.zeros(len(IDENTITY_CHANNELS))) for n in t.labels]).reshape(len(t), -1)
+        colours = {c: v + shift[:, IDENTITY_CHANNELS.index(c)] if c in IDENTITY_CHANNELS else v
+                   for c, v in t.colours_as_read().items()}
+        templates.append(replace(t, colours=colours))
+    return Panel(atlas, templates)
 
 
 def load_panel(path: str | Path | None = None) -> Panel:
