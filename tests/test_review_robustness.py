@@ -765,3 +765,49 @@ def test_labelled_written_as_text_is_not_read_as_true(tmp_path):
     d = ReviewSession(_table(), voxel_size_zyx=VOXEL).to_dict()
     d["labelled"] = "false"
     assert ReviewSession.load(_write(tmp_path, d))._s.labelled is False
+
+
+def test_a_decision_made_before_the_first_labelling_keeps_a_status_that_matches_the_machines_answer():
+    """ReviewSession's docstring: ``accepted`` = the user confirmed the automatic name,
+    ``corrected`` = the user gave *another* name; and ``_apply_labelling`` says a decided neuron
+    without an earlier machine answer "gets none: the 1.0 is the user's".
+
+    A session made without a labelling (``labelling`` is optional: a user's own table reviewed,
+    or a script), a name typed on neuron 3 (status 'corrected', no machine answer there), then the
+    first labelling set with that decision fixed, as Re-label does. Expected: the decision's
+    status still agrees with the automatic name (corrected <=> user_id != auto_id), and the
+    machine is not said to have answered the user's own name at 1.0. Instead, because
+    ``_apply_labelling`` keeps decided rows only once ``s.labelled`` is true, neuron 3 gets
+    auto_id 'RMDL' (= the user's name, from the fixed labelling) and candidates
+    [('RMDL', 1.0)] while its status stays 'corrected'; clearing the decision later would
+    offer the user's own name back as the machine's sure answer."""
+    session = ReviewSession(_table(), voxel_size_zyx=VOXEL)  # no labelling yet
+    session.assign(3, "RMDL")
+    fixed = session.fixed()
+    session.set_labelling(make_labelling(NAMES, PROBS, fixed=fixed), "auto-label", fixed_rows=fixed)
+
+    user, auto, status = session.user_id[3], session.auto_id[3], session.status[3]
+    expected = "accepted" if user == auto else "corrected"
+    assert status == expected, (
+        f"neuron 3: status {status!r} but user_id {user!r} and auto_id {auto!r} "
+        f"(candidates {session.candidates(3)})")
+
+
+def test_a_name_typed_unsure_that_looks_like_a_missing_value_survives_the_autosave(tmp_path):
+    """Every change is autosaved "so a killed napari loses nothing", and what the session shows
+    is what loading its file shows. Typing ``NA?`` on a neuron is taken (parse_name checks for
+    the missing-value spellings before it strips the '?', so it is the name 'NA', unsure) and
+    shown as 'NA?'; the autosaved file holds user_id 'NA', status 'unsure'. Loading that file,
+    ``_agreeing_decisions`` runs parse_name('NA') -> '' (a missing value) and drops the decision
+    silently. Expected: the session and its reloaded file agree (now: 'NA?' is no name, as
+    'NA' is). Instead the decision is gone after reopening."""
+    path = tmp_path / "worm.tif.fdlc-session.json"
+    session = ReviewSession(_table(), make_labelling(NAMES, PROBS), voxel_size_zyx=VOXEL, path=path)
+    try:
+        session.assign(2, "NA?")
+    except FdlcError:
+        return  # refused: consistent
+    reloaded = ReviewSession.load(path)
+    assert (reloaded.user_id[2], reloaded.status[2]) == (session.user_id[2], session.status[2]), (
+        f"shown {session.display_names()[2]!r} ({session.status[2]}) before, "
+        f"{reloaded.display_names()[2]!r} ({reloaded.status[2]}) after reopening")

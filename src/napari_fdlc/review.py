@@ -43,7 +43,7 @@ import pandas as pd
 
 from .errors import FdlcError, atomic_write, warn
 from .match import Labelling
-from .table import (COLOUR_CHANNELS, COORDS, PIXEL_COLUMNS, UNSURE_CONF, NeuronTable, parse_name, write_neuropal_id,
+from .table import (COLOUR_CHANNELS, COORDS, PIXEL_COLUMNS, MISSING_NAMES, UNSURE_CONF, NeuronTable, parse_name, write_neuropal_id,
                     write_table)
 
 STATUSES = ("auto", "accepted", "corrected", "unsure")
@@ -638,7 +638,9 @@ class ReviewSession:
         # decided now, or fixed when the labelling was made (a decision cleared while it ran: the
         # labelling holds the fixed name at 1.0 there, no answer of the machine's)
         fixed = set(fixed_rows)
-        keep = ({i for i, st in enumerate(s.status) if st != "auto"} | fixed) if s.labelled else set()
+        # (also before the first labelling: a name typed there was given the fixed 1.0 as the
+        # machine's answer, and clearing it offered the user's own name back as a sure one)
+        keep = {i for i, st in enumerate(s.status) if st != "auto"} | fixed
         for j in range(n):
             # A decided neuron keeps the machine's earlier answer and candidates (the labelling
             # reports the user's fixed name there, at 1.0), so 'accepted' vs 'corrected' stays
@@ -722,6 +724,9 @@ class ReviewSession:
         text = str(name).strip()
         if text and not text.strip("?"):  # '?' or '??': 'unsure' of the current name (as U), not a name cleared
             return self.mark_unsure(i)
+        if text.rstrip("?").strip() in MISSING_NAMES:  # a table reads it as no name: it was cleared, or lost on reopening
+            raise FdlcError(f"{text!r}: a table reads this as a missing value, not a name; clear the name with an "
+                            "empty name (C) instead")
         clean, conf = parse_name(name)
         if not clean:
             return self.clear(i)

@@ -245,7 +245,7 @@ def parse_name(raw) -> tuple[str, float]:
     """'AVAL' -> ('AVAL', 1); 'AVAL?' or 'AVAL??' -> ('AVAL', 0.5); '?' or '' -> ('', 0)."""
     s = _clean(raw)
     if s.endswith("?"):
-        s = s.rstrip("?").strip()
+        s = _clean(s.rstrip("?"))  # 'NA?' is no name either (kept by a review, lost on reading)
         return (s, UNSURE_CONF) if s else ("", 0.0)
     return (s, 1.0) if s else ("", 0.0)
 
