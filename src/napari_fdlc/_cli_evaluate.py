@@ -81,7 +81,7 @@ def evaluate_corpus(corpus=None, labs=None, weights=None, pairs_per_lab=20, pane
     command += [f"--pairs-per-lab {pairs_per_lab}", f"--panel-worms-per-lab {panel_worms_per_lab}",
                 f"--synthetic-pairs {synthetic_pairs}", *([] if with_cpd else ["--no-cpd"])]
     command = " ".join(command + ([f"--out {shlex.quote(str(out))}"] if out is not None else []))
-    identifier = Identifier.load(weights)
+    identifier = Identifier.load(weights, identifies=True)
     worms = load_corpus(corpus)
     present = {w.lab for w in worms}
     # default: the corpus's labs (the five known ones first, in their order)

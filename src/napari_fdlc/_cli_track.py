@@ -72,21 +72,28 @@ def run(args: argparse.Namespace) -> int:
     from .errors import model_files
     from .table import read_volume, warn_implausible_scales, write_table
     from .track import TrackSettings, read_sequence, track
+    from .train import MAX_THREADS
 
     settings = TrackSettings(search=args.search, placement=args.placement, refine_steps=args.refine_steps,
                              chunk=args.chunk, use_colour=not args.no_colour, follow_with=args.follow_with)
     settings.check()
-    # As fdlc segment; the models are read too, never written.
+    # As fdlc segment; the models are read too, never written (the shipped ones too, by default).
     models = [f for w in (args.weights, args.tracking_weights) if w for f in model_files(w)]
+    if args.method == "fdlc":
+        from .identify import shipped_tracking_weights, shipped_weights
+
+        models += [f for w, given in ((shipped_weights(), args.weights), (shipped_tracking_weights(), args.tracking_weights))
+                   if not given for f in model_files(w)]
     out = check_output(args.out, [*args.inputs, *args.reference, *models], create_folder=True)
-    if args.threads is not None and args.threads < 1:
-        raise FdlcError(f"--threads must be at least 1 (got {args.threads})")
+    if args.threads is not None and not 1 <= args.threads <= MAX_THREADS:  # (2**31 was a torch traceback)
+        raise FdlcError(f"--threads must be from 1 to {MAX_THREADS} (got {args.threads})")
     model_options = [name for name, given in (("--weights", args.weights), ("--tracking-weights", args.tracking_weights),
                                               ("--chirality", args.chirality != "auto")) if given]
+    ignored = []  # said once the input is found good: a refusal is one line, not a warning and an error
     if args.method != "fdlc" and model_options:
-        warn(f"{', '.join(model_options)}: for the fdlc method; ignored with --method {args.method}")
+        ignored.append(f"{', '.join(model_options)}: for the fdlc method; ignored with --method {args.method}")
     elif args.tracking_weights and args.follow_with == "full":
-        warn("--tracking-weights: for --follow-with tracking; ignored with --follow-with full")
+        ignored.append("--tracking-weights: for --follow-with tracking; ignored with --follow-with full")
     # Validate every input before any model work (the references before a recording's segmentation).
     for raw in args.reference_t:
         _reference_time(raw)
@@ -103,11 +110,14 @@ def run(args: argparse.Namespace) -> int:
     if recording is None:  # a table sequence is read before the models load
         from ._cli_segment import stack_options_given
 
-        ignored = stack_options_given(args)
-        if ignored:  # a table in pixels is not converted by --voxel-size: said, not silently dropped
-            warn(f"{', '.join(ignored)}: for an image recording (segmented first); ignored with a table sequence")
+        stack_options = stack_options_given(args)
+        if stack_options:  # a table in pixels is not converted by --voxel-size: said, not silently dropped
+            ignored.append(f"{', '.join(stack_options)}: for an image recording (segmented first); ignored with a "
+                           "table sequence")
         seq = read_sequence(args.inputs)
         references = references_in(seq)
+    for message in ignored:
+        warn(message)
     # The models next: weights that cannot be read are refused before a recording's segmentation.
     identifier = follower = None
     if args.method == "fdlc":
@@ -117,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
             import torch
 
             torch.set_num_threads(args.threads)
-        identifier = (Identifier.load(args.weights) if args.weights else default_identifier()).with_chirality(args.chirality)
+        identifier = (Identifier.load(args.weights, identifies=True) if args.weights else default_identifier()).with_chirality(args.chirality)
         if args.tracking_weights and args.follow_with == "tracking":
             follower = Identifier.load(args.tracking_weights)
     if recording is not None:

@@ -91,10 +91,11 @@ def _run_simulate(args) -> int:
     if out.exists() and not out.is_dir():
         raise FdlcError(f"{out}: --out must be a folder (it receives <stem>_synN.csv), not a file")
     table = read_volume(args.table, "give one time point (one worm) to simulate from")
-    warn_implausible_scales([table])  # the recipe's magnitudes are in µm
-    # Every output checked before the first is written: nothing is written unless all can be.
+    # Every output checked before the first is written: nothing is written unless all can be
+    # (and before any warning: a refusal is one line).
     paths = [check_output(out / f"{Path(args.table).stem}_syn{k}.csv", [args.table], create_folder=True)
              for k in range(args.count)]
+    warn_implausible_scales([table])  # the recipe's magnitudes are in µm
     rng = np.random.default_rng(args.seed)
     for path in paths:
         synth = simulate_worm(table, rng)

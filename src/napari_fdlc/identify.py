@@ -229,15 +229,22 @@ class Identifier:
         self._template_handedness: tuple = (None, None, None)  # (atlas, template's positions and names, mirrored): _atlas_placement
 
     @classmethod
-    def load(cls, path: str | Path | None = None, device: str | None = None) -> "Identifier":
-        """Load weights (``path`` without suffix; default: the weights shipped in the package)."""
+    def load(cls, path: str | Path | None = None, device: str | None = None, identifies: bool = False) -> "Identifier":
+        """Load weights (``path`` without suffix; default: the weights shipped in the package).
+        ``identifies``: refuse a model trained to track (fdlc train --task track), which
+        follows a worm from volume to volume but cannot name one from another."""
         from .model import load_model, model_files
 
         weights, config_path = model_files(path or shipped_weights())
         if not weights.exists():
             raise ModelError(f"no trained weights at {weights}: train them with 'fdlc train'")
         model = load_model(weights)
-        inference = json.loads(config_path.read_text()).get("inference")
+        recorded = json.loads(config_path.read_text())
+        trained = recorded.get("train_config")
+        if identifies and isinstance(trained, dict) and trained.get("task") == "track":
+            raise ModelError(f"{path}: a model trained to track (task 'track'), which cannot name neurons; give an "
+                             "identification model (default: the shipped one)")
+        inference = recorded.get("inference")
         try:
             settings = InferenceSettings.from_dict(inference)
         except (TypeError, ValueError) as exc:

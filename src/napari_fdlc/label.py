@@ -113,6 +113,13 @@ def label_files(
     for t in template_tables:
         if not t.named.any():
             raise FdlcError(f"{t.source}: the template has no named neuron (a 'label' column with names is needed)")
+    from .errors import model_files
+    from .reference import shipped_atlas_path
+
+    # The weights (the shipped ones by default) and the shipped atlas are read too, never written;
+    # checked before any warning (a refusal is one line)
+    paths = _output_paths(tests, out, [*tests, *(templates or []), *model_files(weights or shipped_weights()),
+                                       shipped_atlas_path()])
     if method == "fdlc":  # once for all the tests
         template_tables = harmonise(template_tables)
     warn_implausible_scales([*test_tables, *template_tables])
@@ -127,12 +134,6 @@ def label_files(
                  "(cpd tries both handednesses, with no model): ignored here")
     elif not use_atlas and not template_tables:
         warn("--no-atlas is for --template (the built-in panel always joins the atlas's answer): ignored here")
-    from .errors import model_files
-    from .reference import shipped_atlas_path
-
-    # The weights (the shipped ones by default) and the shipped atlas are read too, never written.
-    paths = _output_paths(tests, out, [*tests, *(templates or []), *model_files(weights or shipped_weights()),
-                                       shipped_atlas_path()])
     applies = not template_tables and chirality == "auto"
     if shared_handedness and not (applies and len(test_tables) > 1):
         warn("--shared-handedness is for several tests named by the built-in panel with --chirality auto: ignored here")
@@ -150,7 +151,7 @@ def label_files(
             note = colour_note(t, references, use_colour)
             if note:
                 warn(note)
-        identifier = (Identifier.load(weights) if weights else default_identifier()).with_chirality(chirality)
+        identifier = (Identifier.load(weights, identifies=True) if weights else default_identifier()).with_chirality(chirality)
         if template_tables or not (shared_handedness or adapt_colours):
             results = [label_neurons(t, template_tables or None, use_colour, identifier=identifier, use_atlas=use_atlas)
                        for t in test_tables]
