@@ -231,7 +231,7 @@ class Identifier:
     @classmethod
     def load(cls, path: str | Path | None = None, device: str | None = None, identifies: bool = False) -> "Identifier":
         """Load weights (``path`` without suffix; default: the weights shipped in the package).
-        ``identifies``: refuse a model trained to track (fdlc train --task track), which
+        ``identifies``: refuse a model trained to track (its training config's "task": "track"), which
         follows a worm from volume to volume but cannot name one from another."""
         from .model import load_model, model_files
 
