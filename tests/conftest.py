@@ -121,3 +121,23 @@ def recording(tmp_path_factory):
     path = tmp_path_factory.mktemp("recording") / "recording.ome.tif"
     write_tiff(path, series)
     return path, truths, origins
+
+
+@pytest.fixture
+def small_tables(tmp_path):
+    """template.csv, test.csv (generated worms) and recording.csv (3 time points, a t column)."""
+    import pandas as pd
+
+    write_table(generate_worm(seed=0), tmp_path / "template.csv")
+    write_table(generate_worm(seed=1), tmp_path / "test.csv")
+    worm = pd.read_csv(tmp_path / "template.csv")
+    rng = np.random.default_rng(0)
+    frames = []
+    for t in range(3):
+        f = worm.copy()
+        f[["x_um", "y_um", "z_um"]] += rng.normal(0, 0.3, (len(f), 3))
+        f["t"] = t
+        f["label"] = ""
+        frames.append(f)
+    write_table(pd.concat(frames, ignore_index=True), tmp_path / "recording.csv")
+    return tmp_path

@@ -503,29 +503,6 @@ def _imports_torch(args: list[str], cwd: Path) -> tuple[int, bool, str]:
     return int(found.group(1)), found.group(2) == "True", done.stderr
 
 
-@pytest.fixture
-def small_tables(tmp_path):
-    import numpy as np
-    import pandas as pd
-
-    from napari_fdlc.reference import generate_worm
-    from napari_fdlc.table import write_table
-
-    write_table(generate_worm(seed=0), tmp_path / "template.csv")
-    write_table(generate_worm(seed=1), tmp_path / "test.csv")
-    worm = pd.read_csv(tmp_path / "template.csv")
-    rng = np.random.default_rng(0)
-    frames = []
-    for t in range(3):
-        f = worm.copy()
-        f[["x_um", "y_um", "z_um"]] += rng.normal(0, 0.3, (len(f), 3))
-        f["t"] = t
-        f["label"] = ""
-        frames.append(f)
-    write_table(pd.concat(frames, ignore_index=True), tmp_path / "recording.csv")
-    return tmp_path
-
-
 def test_track_geometry_needs_no_torch(small_tables):
     """`fdlc track --method geometry` (no model) never imports torch (1.8 s here): the path
     helper model_files lived in model.py, and the warp was solved with torch."""

@@ -22,7 +22,6 @@ from napari_fdlc.table import NeuronTable, write_table
 from napari_fdlc.track import join_by_time
 from napari_fdlc.render import random_worm, render_stack
 import shutil
-from napari_fdlc.reference import generate_worm
 
 
 def run(*args):
@@ -345,43 +344,19 @@ def test_track_an_nwb_file_is_refused_as_no_recording(tmp_path, capsys):
     assert "one annotated volume, not a recording" in one_line(capsys) and not out.exists()
 
 
-def one_error_line(capsys) -> str:
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("fdlc: error:"), err
-    return err[0]
-
-
-@pytest.fixture
-def tables(tmp_path):
-    """test.csv, template.csv (generated worms) and recording.csv (3 time points, a t column)."""
-    write_table(generate_worm(seed=1), tmp_path / "test.csv")
-    write_table(generate_worm(seed=2), tmp_path / "template.csv")
-    worm = pd.read_csv(tmp_path / "template.csv")
-    rng = np.random.default_rng(0)
-    frames = []
-    for t in range(3):
-        f = worm.copy()
-        f[["x_um", "y_um", "z_um"]] += rng.normal(0, 0.3, (len(f), 3))
-        f["t"] = t
-        f["label"] = ""
-        frames.append(f)
-    write_table(pd.concat(frames, ignore_index=True), tmp_path / "recording.csv")
-    return tmp_path
-
-
-def test_track_threads_beyond_a_c_int_is_one_line(tables, capsys):
+def test_track_threads_beyond_a_c_int_is_one_line(small_tables, capsys):
     """`fdlc track rec.csv --threads 2147483648`: expected exit 2 and one line (as `fdlc train`
     refuses --threads above 1024: "torch's own refusal of 2**31 was a traceback"). Instead
     _cli_track.run checks only `--threads < 1` and passes the value to torch.set_num_threads,
     whose "ValueError: Overflow when unpacking long" escapes main() as a traceback."""
-    out = tables / "tracks.csv"
-    code = run("track", tables / "recording.csv", "--quiet", "--threads", 2**31, "--out", out)
+    out = small_tables / "tracks.csv"
+    code = run("track", small_tables / "recording.csv", "--quiet", "--threads", 2**31, "--out", out)
     assert code == 2
-    assert "--threads" in one_error_line(capsys)
+    assert "--threads" in one_line(capsys)
     assert not out.exists()
 
 
-def test_track_refuses_an_out_over_the_shipped_models_it_reads(tables, capsys, monkeypatch):
+def test_track_refuses_an_out_over_the_shipped_models_it_reads(small_tables, capsys, monkeypatch):
     """docs/cli.md: `fdlc track` refuses an output that would replace "its models"; `fdlc label`
     counts the shipped weights (read by default) among its inputs and refuses an --out over them.
     `fdlc track rec.csv --out .../data/fdlc_tracking.json` (the default models, no --weights)
@@ -391,7 +366,7 @@ def test_track_refuses_an_out_over_the_shipped_models_it_reads(tables, capsys, m
     package's data folder is a copy in tmp_path, so nothing shipped is touched."""
     from napari_fdlc import identify
 
-    data = tables / "data"
+    data = small_tables / "data"
     data.mkdir()
     shipped = identify.shipped_weights()
     for name in (shipped.name, identify.TRACKING_WEIGHTS_NAME):
@@ -401,71 +376,71 @@ def test_track_refuses_an_out_over_the_shipped_models_it_reads(tables, capsys, m
     monkeypatch.setattr(identify, "_DEFAULT", {})
     record = data / f"{identify.TRACKING_WEIGHTS_NAME}.json"
     before = record.read_bytes()
-    code = run("track", tables / "recording.csv", "--quiet", "--out", record)
+    code = run("track", small_tables / "recording.csv", "--quiet", "--out", record)
     after = record.read_bytes()
     assert after == before, f"the tracking model's record was replaced by: {after[:60]!r}"
     assert code == 2
-    one_error_line(capsys)
+    one_line(capsys)
 
 
 @pytest.mark.parametrize("case", ["few_neurons", "cpd_with_weights", "no_atlas_without_template"])
-def test_label_refusing_its_out_says_one_line_without_warnings_first(tables, capsys, case):
+def test_label_refusing_its_out_says_one_line_without_warnings_first(small_tables, capsys, case):
     """docs/cli.md: "exit 0 on success, 2 with one line on stderr for bad input", and an output
     that would replace an input is refused "before any work". Expected: exactly the one error
     line. Instead label.label_files prints its warnings (a test of fewer than 10 neurons, an
     option ignored with --method cpd, --no-atlas without --template) before _output_paths
     checks --out, so stderr holds a warning about a run that never happens, then the error."""
-    test, template = tables / "test.csv", tables / "template.csv"
-    few = tables / "few.csv"
+    test, template = small_tables / "test.csv", small_tables / "template.csv"
+    few = small_tables / "few.csv"
     pd.read_csv(test).head(5).to_csv(few, index=False)
     args = {
         "few_neurons": [few, "--template", template, "--method", "cpd", "--out", template],
-        "cpd_with_weights": [test, "--template", template, "--method", "cpd", "--weights", tables / "w", "--out", template],
+        "cpd_with_weights": [test, "--template", template, "--method", "cpd", "--weights", small_tables / "w", "--out", template],
         "no_atlas_without_template": [test, "--no-atlas", "--out", test],
     }[case]
     before = {p: p.read_bytes() for p in (test, template)}
     assert run("label", *args) == 2
-    assert "would replace an input" in one_error_line(capsys)
+    assert "would replace an input" in one_line(capsys)
     assert {p: p.read_bytes() for p in before} == before
 
 
 @pytest.mark.parametrize("case", ["chirality_then_bad_reference_t", "weights_then_two_references",
                                   "voxel_size_then_no_t_column"])
-def test_track_bad_input_is_one_line_without_ignored_option_warnings_first(tables, capsys, case):
+def test_track_bad_input_is_one_line_without_ignored_option_warnings_first(small_tables, capsys, case):
     """Bad input to `fdlc track` is refused with one line (tracking.md: "refused with one line
     ... before any work; exit status 2"). Expected: only the error. Instead _cli_track.run
     warns that --chirality / --weights are ignored with --method geometry, or that
     --voxel-size is ignored with a table sequence, before it checks --reference-t, the number
     of references, or reads the sequence: two lines, the first about a run that never
     happens."""
-    rec, test = tables / "recording.csv", tables / "test.csv"
+    rec, test = small_tables / "recording.csv", small_tables / "test.csv"
     geometry = ["--method", "geometry", "--quiet"]
     args = {
         "chirality_then_bad_reference_t": [rec, *geometry, "--chirality", "same", "--reference-t", "abc"],
-        "weights_then_two_references": [rec, *geometry, "--weights", tables / "w", "--reference-t", "0",
+        "weights_then_two_references": [rec, *geometry, "--weights", small_tables / "w", "--reference-t", "0",
                                         "--reference-t", "1"],
         "voxel_size_then_no_t_column": [test, *geometry, "--voxel-size", "1", "0.25", "0.25"],
     }[case]
-    out = tables / "tracks.csv"
+    out = small_tables / "tracks.csv"
     assert run("track", *args, "--out", out) == 2
-    one_error_line(capsys)
+    one_line(capsys)
     assert not out.exists()
 
 
-def test_simulate_refusing_its_out_says_one_line_without_a_scale_warning_first(tables, capsys):
+def test_simulate_refusing_its_out_says_one_line_without_a_scale_warning_first(small_tables, capsys):
     """`fdlc simulate nm.csv --out DIR` where DIR/nm_syn0.csv is a folder: expected exit 2 and the
     one error line. Instead cli._run_simulate warns that the table cannot be in µm
     (warn_implausible_scales) before it checks the outputs: two lines, the first about synthetic
     worms that are never made."""
-    df = pd.read_csv(tables / "test.csv")
+    df = pd.read_csv(small_tables / "test.csv")
     df[["x_um", "y_um", "z_um"]] *= 1000  # nanometres
-    df.to_csv(tables / "nm.csv", index=False)
-    (tables / "syn" / "nm_syn0.csv").mkdir(parents=True)
-    assert run("simulate", tables / "nm.csv", "--out", tables / "syn") == 2
-    assert "is a folder" in one_error_line(capsys)
+    df.to_csv(small_tables / "nm.csv", index=False)
+    (small_tables / "syn" / "nm_syn0.csv").mkdir(parents=True)
+    assert run("simulate", small_tables / "nm.csv", "--out", small_tables / "syn") == 2
+    assert "is a folder" in one_line(capsys)
 
 
-def test_label_refuses_the_tracking_model_as_its_weights(tables, capsys):
+def test_label_refuses_the_tracking_model_as_its_weights(small_tables, capsys):
     """The shipped tracking model (fdlc_tracking, its JSON's train_config.task = "track") "cannot
     identify: it never sees two worms" (speed.md). `fdlc label --weights .../fdlc_tracking`
     (the two model paths confused; `fdlc track --weights` is the same) is expected to be
@@ -475,9 +450,9 @@ def test_label_refuses_the_tracking_model_as_its_weights(tables, capsys):
     from napari_fdlc.identify import TRACKING_WEIGHTS_NAME, shipped_weights
 
     tracking = shipped_weights().with_name(TRACKING_WEIGHTS_NAME)
-    out = tables / "ids.csv"
-    code = run("label", tables / "test.csv", "--template", tables / "template.csv", "--weights", tracking,
+    out = small_tables / "ids.csv"
+    code = run("label", small_tables / "test.csv", "--template", small_tables / "template.csv", "--weights", tracking,
                "--no-atlas", "--out", out)
     assert code == 2, "named with the tracking model, silently"
-    assert "track" in one_error_line(capsys)
+    assert "track" in one_line(capsys)
     assert not out.exists()
