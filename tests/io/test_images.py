@@ -27,6 +27,8 @@ from napari_fdlc.io.nwb import _text, read_nwb_neurons, write_nwb
 from napari_fdlc.table import NeuronTable
 import gc
 import warnings
+import re
+from napari_fdlc.io.images import AxesUnknown
 
 NAMES = ["mNeptune2.5", "CyOFP1.5", "mTagBFP2", "TagRFP-T"]
 
@@ -839,3 +841,106 @@ def test_a_lazily_read_nd2_whose_data_do_not_fit_its_sizes_is_closed(tmp_path, m
     with pytest.raises(ImageError, match="does not match"):
         read_nd2(tmp_path / "w.nd2", opener=lambda p: fake)
     assert fake.closed, "the refused ND2 file was left open"
+
+
+
+def test_the_axes_advice_for_an_rgb_tiff_gives_the_right_image(tmp_path):
+    """Expected: a TIFF of RGB pages that does not record its axes (tifffile axes 'QYXS',
+    shape (5, 16, 16, 3): 5 planes of 16 x 16 with 3 colour samples) is refused with advice
+    that, followed, reads the image right: 3 channels of 5 x 16 x 16. Actual: the advice is
+    '--axes ZCYX' (the 4D example, whatever the axes), and following it reads the file silently
+    as 16 channels of 5 x 16 x 3 (Y as channels, the samples as X). Cause:
+    images._tiff_stack picks the example from data.ndim alone ({3: ZYX, 4: ZCYX, 5: TZCYX});
+    where tifffile names a sample axis S (last), the example should end in ...YXC (e.g. ZYXC)."""
+    rgb = (np.arange(5 * 16 * 16 * 3) % 251).astype(np.uint8).reshape(5, 16, 16, 3)
+    path = tmp_path / "rgb.tif"
+    tifffile.imwrite(path, rgb, photometric="rgb")
+    with pytest.raises(AxesUnknown) as exc:
+        read_stack(path, voxel_size=(1.5, 0.25, 0.25))
+    advised = re.search(r"--axes (\w+)", str(exc.value)).group(1)
+    got = read_stack(path, voxel_size=(1.5, 0.25, 0.25), axes=advised)
+    assert got.data.shape == (3, 5, 16, 16), (advised, got.data.shape)
+    np.testing.assert_array_equal(np.asarray(got.data), rgb.transpose(3, 0, 1, 2))
+
+
+@pytest.mark.parametrize("ome", [True, False], ids=["ome-tiff", "imagej"])
+def test_a_channel_without_role_keeps_none_on_a_tiff_round_trip(tmp_path, ome):
+    """Expected (docs/image_formats.md, Writing: OME-TIFF and ImageJ files "both read back
+    with voxel size, channel names and roles"): a stack whose TagRFP-T channel the user set to
+    be ignored (roles R, G, B, None, as --channels R G B - gives) reads back with roles R, G, B,
+    None. Actual: R, G, B, W: the ignored channel is used as W again. Cause:
+    images.finish_stack fills every channel the file leaves untyped from its name
+    (roles_from_names), also for the files write_tiff wrote, whose roles are complete (OME
+    Fluor '' / the ImageJ fdlc_roles property say "no role"); the fill should be skipped when
+    the file records a role for every channel (e.g. the fdlc_roles property, or a Fluor
+    attribute on every OME Channel)."""
+    data = np.stack([_zcyx(nc=1)[:, 0]] * 4)
+    stack = Stack(data, (1.5, 0.25, 0.25), ["R", "G", "B", None], channel_names=NAMES)
+    path = tmp_path / ("s.ome.tif" if ome else "s.tif")
+    write_tiff(path, stack, ome=ome)
+    assert read_stack(path).channel_roles == ["R", "G", "B", None]
+
+
+def test_a_lazily_read_imagej_file_over_4gb_leaves_no_file_open(tmp_path, monkeypatch):
+    """Expected (the brief's contract: files closed): reading an ImageJ hyperstack over 4 GB
+    (one page header, the planes after it) lazily keeps no stray open file: the planes are
+    memory-mapped, so the TiffFile is no longer needed. Actual: the TiffFile is left open and
+    unreferenced; Python reports "ResourceWarning: unclosed file" at the next garbage
+    collection, while the stack is still in use (on Windows the file stays locked). Cause:
+    images._lazy_contiguous maps the planes with np.memmap(tif.filehandle.path) and read_tiff
+    never closes ``tif`` on this path (only _lazy_tiff's page-by-page array keeps it in use);
+    close it after the memmap is made."""
+    data = _zcyx()
+    path = tmp_path / "big_fiji.tif"
+    tifffile.imwrite(path, data, imagej=True, truncate=True, resolution=(4.0, 4.0),
+                     metadata={"axes": "ZCYX", "unit": "micron", "spacing": 1.5})
+    monkeypatch.setattr(images, "LAZY_BYTES", 0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ResourceWarning)
+        stack = read_stack(path)
+        gc.collect()
+        np.testing.assert_array_equal(np.asarray(stack.data), data.transpose(1, 0, 2, 3))
+    unclosed = [str(w.message) for w in caught if issubclass(w.category, ResourceWarning) and str(path) in str(w.message)]
+    assert not unclosed, unclosed
+
+
+def test_damaged_tiff_data_read_in_memory_says_what_to_do(tmp_path):
+    """Expected (docs/image_formats.md: damaged files are refused "each with one line saying
+    what to do"; the lazy reader says "the file is damaged, re-export it"): a TIFF whose
+    compressed data are damaged, read into memory (under 1 GiB), is refused with advice.
+    Actual: "...: the TIFF image data cannot be read (libdeflate_zlib_decompress returned
+    LIBDEFLATE_BAD_DATA)", no word of what to do. Cause: read_tiff's eager branch
+    (series.asarray() failing) words its ImageError without the advice the other refusals of
+    damaged TIFFs carry."""
+    path = tmp_path / "damaged.ome.tif"
+    tifffile.imwrite(path, _zcyx(), ome=True, compression="zlib",
+                     metadata={"axes": "ZCYX", "PhysicalSizeZ": 1.5, "PhysicalSizeY": 0.25, "PhysicalSizeX": 0.25})
+    with tifffile.TiffFile(path) as tif:
+        page = tif.series[0].pages[3]
+        offset, count = page.dataoffsets[0], page.databytecounts[0]
+    raw = bytearray(path.read_bytes())
+    raw[offset:offset + count] = bytes(count)
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ImageError) as exc:
+        read_stack(path)
+    message = str(exc.value)
+    assert "\n" not in message
+    assert re.search(r"re-export|export|re-save|save it", message), message
+
+
+def test_an_rgb_ome_tiff_whose_channel_has_a_fluor_opens(tmp_path):
+    """Expected: a valid OME-TIFF of RGB planes (SizeC 3 as one Channel of SamplesPerPixel 3,
+    which carries a Name and a Fluor) opens as 3 channels; the one Fluor cannot type three
+    channels, so it is dropped as the one Name is. Actual: ImageError "1 channel roles for 3
+    channels", blaming roles the user never gave; the file does not open. Cause:
+    images.finish_stack drops file names whose count does not fit the channels but passes the
+    file's roles (_ome_channels, one per Channel element) on to Stack unchecked; roles of the
+    wrong length should be dropped like the names."""
+    rgb = (np.arange(5 * 16 * 16 * 3) % 251).astype(np.uint8).reshape(5, 16, 16, 3)
+    path = tmp_path / "rgb.ome.tif"
+    tifffile.imwrite(path, rgb, photometric="rgb", ome=True, metadata={
+        "axes": "ZYXS", "PhysicalSizeZ": 1.5, "PhysicalSizeY": 0.25, "PhysicalSizeX": 0.25,
+        "Channel": {"Name": ["TagRFP-T"], "Fluor": ["TagRFP-T"]}})
+    got = read_stack(path)
+    assert got.data.shape == (3, 5, 16, 16)
+    np.testing.assert_array_equal(np.asarray(got.data), rgb.transpose(3, 0, 1, 2))

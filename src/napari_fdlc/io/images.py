@@ -416,11 +416,13 @@ def finish_stack(
     names = list(names) if names is not None and len(names) == n_channels else None
     if user_channels is not None:
         channel_roles = parse_channel_roles(user_channels, n_channels, source)
-    elif roles is not None:
+    elif roles is not None and len(roles) == n_channels:  # (an RGB OME channel has one Fluor for 3)
         channel_roles = list(roles)
-        if names is not None:  # fill channels the file did not type (e.g. GFP) from their names
-            guessed = roles_from_names(names)
-            channel_roles = [r or (g if g not in channel_roles else None) for r, g in zip(channel_roles, guessed)]
+        if names is not None:  # fill channels the file did not type (e.g. GFP) from their names; ''
+            guessed = roles_from_names(names)  # is a channel the file says has no role
+            channel_roles = [r if r is not None else (g if g not in channel_roles else None)
+                             for r, g in zip(channel_roles, guessed)]
+        channel_roles = [r or None for r in channel_roles]
     elif names is not None:
         channel_roles = roles_from_names(names)
     else:
@@ -480,7 +482,8 @@ def read_tiff(
             try:
                 data = series.asarray()
             except Exception as exc:
-                raise ImageError(f"{source}: the TIFF image data cannot be read ({_first_line(exc)})") from None
+                raise ImageError(f"{source}: the TIFF image data cannot be read ({_first_line(exc)}); the file "
+                                 "is damaged: re-export it") from None
             tif.close()
     except BaseException:
         tif.close()
@@ -508,6 +511,8 @@ def _tiff_stack(data, file_axes, axes, source, voxel, names, voxel_size, channel
         unknown = [n for a, n in zip(file_axes, data.shape) if a in "QI" and n > 1]
         if unknown:
             example = {3: "ZYX", 4: "ZCYX", 5: "TZCYX"}.get(data.ndim, "ZCYX")
+            if file_axes.endswith("S"):  # an RGB TIFF: its samples (last) are the channels
+                example = {3: "YXC", 4: "ZYXC", 5: "TZYXC"}.get(data.ndim, "ZYXC")
             raise AxesUnknown(
                 f"{source}: the TIFF does not say its axes (shape {tuple(data.shape)}); "
                 f"give them, e.g. --axes {example} (axes='{example}')", tuple(data.shape)
@@ -607,6 +612,7 @@ def _lazy_contiguous(tif, series, page_shape: tuple, source: str):
     except (ValueError, OSError) as exc:  # data past the end of the file
         raise ImageError(f"{source}: the TIFF is truncated ({_first_line(exc)}); re-export it") from None
     lead = len(series.shape) - len(page_shape)
+    tif.close()  # the planes are mapped from the file: nothing else reads it (it was left open)
     return da.from_array(planes, chunks=(1,) * lead + page_shape)
 
 
@@ -640,7 +646,10 @@ def _ome_channels(xml: str) -> tuple[list[str | None] | None, list[str | None] |
     names = [c.get("Name") or c.get("Fluor") for c in channels]
     if any(names):  # a channel OME leaves unnamed gets a name of its place (None broke every writer)
         names = [name or f"channel {i}" for i, name in enumerate(names)]
-    roles = roles_from_names([c.get("Fluor") for c in channels])  # a Fluor given twice: ambiguous, dropped
+    fluors = [c.get("Fluor") for c in channels]
+    roles = roles_from_names(fluors)  # a Fluor given twice: ambiguous, dropped
+    # an empty Fluor (write_tiff's channel of no role) says none: '' is not guessed from its name
+    roles = [r if r is not None or f != "" else "" for r, f in zip(roles, fluors)]
     return names if any(names) else None, roles if any(roles) else None
 
 
@@ -688,7 +697,8 @@ def _tiff_metadata(tif) -> tuple[list[float | None] | None, list[str] | None, li
         elif isinstance(labels, list) and n_c == 1 and labels and len(set(labels)) == 1:
             names = [labels[0]]  # one channel: every plane carries its name (as write_tiff writes it)
         written = [r.strip() for r in str((meta.get("Properties") or {}).get(IMAGEJ_ROLES, "")).split(",")]
-        roles = [r if r in ROLES else None for r in written] if len(written) == n_c else None
+        # an empty entry: no role, as written ('' is not guessed from the channel's name)
+        roles = [r if r in ROLES else ("" if r == "" else None) for r in written] if len(written) == n_c else None
         return [z, y, x], names, roles if roles and any(roles) else None
     return None, None, None
 
