@@ -325,3 +325,40 @@ def test_an_empty_value_beyond_the_header_on_a_later_row_is_dropped_as_docs_say(
     table = read_table(path)
     assert table.xyz.tolist() == [[1, 2, 3], [4, 5, 6], [7, 8, 9]]
     assert list(table.labels) == ["A", "B", "C"]
+
+
+def test_a_note_holding_a_carriage_return_is_written_so_that_it_reads_back(tmp_path):
+    """Expected: a table written by write_table reads back with read_table, its other columns'
+    text as written (docs/cli.md: "other columns are kept when a table is read and written
+    back"). A note holding a lone carriage return ('a\rb', text pasted from an old Mac tool or
+    a terminal) is written unquoted, and the file written is then refused: "line 4, column
+    'x_um': b is not a finite number" (napari's writer, through write_table, writes the same
+    broken file). Cause: table.write_table passes the text to DataFrame.to_csv, whose csv
+    writer quotes only fields holding the line terminator '\n', and read_table (universal
+    newlines, and pandas' parser alike) takes the bare '\r' for the end of a row."""
+    table = NeuronTable([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], extra=pd.DataFrame({"note": ["ok", "a\rb"]}))
+    write_table(table, tmp_path / "a.csv")
+    assert read_table(tmp_path / "a.csv").extra["note"].tolist() == ["ok", "a\rb"]
+
+
+def test_a_windows_line_break_inside_a_cell_is_kept_as_written(tmp_path):
+    """Expected: a note holding a Windows line break ('line 1\r\nline 2'), written by
+    write_table (quoted), reads back as written. Actual: it reads back as 'line 1\nline 2'.
+    Cause: table.read_table reads the file with Path.read_text (universal newlines), which
+    turns every '\r\n' into '\n', inside quoted cells too, before the CSV is parsed (open it
+    with newline='' and let the CSV parsers take the line ends)."""
+    table = NeuronTable([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], extra=pd.DataFrame({"note": ["ok", "line 1\r\nline 2"]}))
+    write_table(table, tmp_path / "a.csv")
+    assert read_table(tmp_path / "a.csv").extra["note"].tolist() == ["ok", "line 1\r\nline 2"]
+
+
+def test_a_missing_name_in_a_nullable_string_column_is_no_name():
+    """Expected: a name missing as pandas' nullable types hold it (pd.NA: a label column of
+    dtype "string", e.g. after DataFrame.convert_dtypes()) is no name, as None, NaN, '' and 'NA'
+    are (table_from_dataframe validates "a data frame in our column layout"). Actual: the
+    neuron is named '<NA>' with confidence 1, and such a table used as a template gives that
+    name. Cause: table._clean handles None and float NaN only; pd.NA falls through to str()."""
+    assert parse_name(pd.NA) == ("", 0.0)
+    df = pd.DataFrame({"x_um": [1.0, 2.0, 3.0], "y_um": [1.0, 2.0, 3.0], "z_um": [1.0, 2.0, 3.0],
+                       "label": pd.array(["AVAL", None, "AVAR"], dtype="string")})
+    assert list(table_from_dataframe(df).labels) == ["AVAL", "", "AVAR"]

@@ -235,7 +235,7 @@ MISSING_NAMES = frozenset({"NA", "NaN", "nan", "#N/A"})
 
 
 def _clean(name) -> str:
-    if name is None or (isinstance(name, float) and np.isnan(name)):
+    if name is None or (np.ndim(name) == 0 and pd.isna(name)):  # pd.NA too (a 'string' column): no '<NA>'
         return ""
     name = str(name).strip()
     return "" if name in MISSING_NAMES else name
@@ -271,7 +271,8 @@ def read_table(path: str | os.PathLike, names: bool = True, unique_names: bool =
     if path.is_dir():
         raise TableError(f"{name}: is a folder, not a neuron table")
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        # as written: a line break inside a quoted cell ('\r\n' from Excel) stays as it is
+        text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError:
         raise TableError(f"{name}: not a UTF-8 text CSV file") from None
     except OSError as exc:
@@ -521,8 +522,12 @@ def write_table(table: NeuronTable | pd.DataFrame, path: str | os.PathLike) -> N
     exact = [c for c in (*COORDS, "t", *COLOUR_CHANNELS, "GFP") if c in df.columns and pd.api.types.is_float_dtype(df[c])]
     if exact:
         df = df.assign(**{c: [repr(v) if np.isfinite(v) else "" for v in df[c].to_numpy(float).tolist()] for c in exact})
+    # A text cell holding a lone '\r' is quoted only where '\r' ends the records (the csv module
+    # quotes a field for its line terminator's characters): written unquoted it broke the file
+    crlf = any(isinstance(v, str) and "\r" in v for c in df.columns if not pd.api.types.is_numeric_dtype(df[c])
+               for v in df[c])
     with atomic_write(path, "w", encoding="utf-8", newline="") as handle:
-        df.to_csv(handle, index=False, float_format="%.6g")
+        df.to_csv(handle, index=False, float_format="%.6g", lineterminator="\r\n" if crlf else "\n")
 
 
 def write_neuropal_id(

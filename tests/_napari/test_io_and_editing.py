@@ -1358,3 +1358,45 @@ def test_a_neuropal_id_table_opens_on_its_voxels_and_a_moved_point_is_saved_with
     df = pd.read_csv(out, keep_default_na=False)
     assert "Internal X (px)" not in df.columns
     assert df["x_px"][0] == pytest.approx(xyz[0, 0] / 0.25 + 8) and df["x_um"][0] == pytest.approx(7.0)
+
+
+def test_a_segment_table_opened_and_saved_in_napari_keeps_its_positions(tmp_path):
+    """Expected: a neuron table as ``fdlc segment`` writes it (positions to the last digit,
+    repr, beside x_px, y_px, z_px) opened in napari and saved unchanged with the napari-fdlc
+    writer has exactly the positions read (write_table writes them "to the last digit"; the
+    sample's 3-decimal table already round-trips). Actual: every 16-17-digit position comes back
+    cut to 15 significant digits (12.345678901234567 -> 12.3456789012346), even with a voxel
+    size of 0.25 where µm / voxel * voxel is exact. Cause: _napari/_io.py:write_neuron_csv
+    rounds every scaled world coordinate to ``.15g`` to undo the division's last bits, which
+    also drops the digits that were read."""
+    from napari_fdlc._napari._io import get_table_reader, write_neuron_csv
+
+    xyz = np.array([[12.345678901234567, 3.141592653589793, 7.123456789012345],
+                    [40.98765432109876, 1.6389409646301716, 10.791468550226549]])
+    vox = np.array([0.25, 0.25, 1.5])  # x, y, z
+    extra = pd.DataFrame({"x_px": xyz[:, 0] / vox[0], "y_px": xyz[:, 1] / vox[1], "z_px": xyz[:, 2] / vox[2]})
+    path = tmp_path / "neurons.csv"
+    write_table(NeuronTable(xyz, extra=extra), path)
+    data, kwargs, _ = get_table_reader(str(path))(str(path))[0]
+    assert kwargs["scale"] == (1.5, 0.25, 0.25)
+    [saved] = write_neuron_csv(str(tmp_path / "saved.csv"), data, {"scale": kwargs["scale"], "features": kwargs["features"]})
+    back = read_table(saved).xyz
+    # x, y on voxels of 0.25 (µm / voxel * voxel exact) come back whole; z's 1.5 leaves both
+    # 7.123456789012345 and the ...344 next to it on the same voxel coordinate: one ulp
+    assert back[:, :2].tolist() == xyz[:, :2].tolist(), f"{xyz.tolist()} -> {back.tolist()}"
+    np.testing.assert_allclose(back[:, 2], xyz[:, 2], rtol=4e-16, atol=0)
+
+
+def test_napari_opens_a_table_whose_first_column_name_holds_a_line_break(tmp_path):
+    """Expected: a neuron table that read_table reads opens in napari too (its reader claims
+    our CSV). A column name with a line break (Excel's Alt+Enter in a header cell, quoted in
+    the CSV) in front of x_um: read_table reads it, napari's reader declines the file
+    (get_table_reader returns None: "no reader"). Cause: _napari/_io.py:get_table_reader parses
+    each physical line on its own (csv.reader([line])), so the quoted header is cut at its line
+    break and x_um, y_um, z_um are never seen."""
+    from napari_fdlc._napari._io import get_table_reader
+
+    path = tmp_path / "t.csv"
+    path.write_text('"cell\nnote",x_um,y_um,z_um\na,1,2,3\nb,4,5,6\n', encoding="utf-8")
+    assert read_table(path).xyz.tolist() == [[1, 2, 3], [4, 5, 6]]
+    assert get_table_reader(str(path)) is not None, "the napari reader declines a neuron table the core reads"

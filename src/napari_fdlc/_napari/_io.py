@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import os
 from pathlib import Path
 
@@ -202,7 +203,8 @@ def get_table_reader(path):
     lines = head.splitlines()
     if lines and lines[0].strip().lower().startswith("sep="):  # Excel's separator line, skipped by the reader
         lines = lines[1:]
-    rows = [[h.strip() for h in next(csv.reader([line]), [])] for line in lines]  # quoted names too (R's write.csv)
+    # quoted names too (R's write.csv), a line break inside one (Excel's Alt+Enter) too
+    rows = [[h.strip() for h in cells] for cells in csv.reader(io.StringIO("\n".join(lines)))]
     header = next((cells for cells in rows if any(cells)), [])  # blank lines and ',,,' above it, as the reader
     ours = all(c in header for c in ("x_um", "y_um", "z_um"))
     return read_table_layer if (ours or neuropal_id_header(lines) is not None) else None
@@ -294,6 +296,21 @@ def _times_of_frames(frames: np.ndarray, t: pd.Series) -> list:
     return [known.get(frame, int(frame) if float(frame).is_integer() else frame) for frame in frames]
 
 
+def _digits_read(world: np.ndarray, data: np.ndarray, scale: np.ndarray, translate: np.ndarray) -> np.ndarray:
+    """Each world coordinate as the shortest text (15 to 17 significant digits) that the layer's
+    data coordinate comes from again: 1.2 rather than 1.2000000000000002 for a value read as 1.2,
+    and a position of 17 digits kept whole (15 cut it, also where nothing needed mending)."""
+    out = world.copy()
+    for index, value in np.ndenumerate(world):
+        axis = index[-1]
+        for digits in (15, 16):
+            shorter = float(f"{value:.{digits}g}")
+            if (shorter - translate[axis]) / scale[axis] == data[index]:
+                out[index] = shorter
+                break
+    return out
+
+
 def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     """npe2 writer: a Points layer as a neuron-ID CSV (``x_um, y_um, z_um`` in the world frame,
     the layer's features, and ``x_px, y_px, z_px`` voxel coordinates when the layer is scaled).
@@ -315,7 +332,7 @@ def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     scaled = not np.allclose(scale[-3:], 1.0) or not np.allclose(translate[-3:], 0.0)
     world = data * scale + translate
     if scaled:  # µm divided by the voxel size and multiplied back: the digits read, not the last bits of that
-        world = np.array([float(f"{v:.15g}") for v in world.ravel()]).reshape(world.shape)
+        world = _digits_read(world, data, scale, translate)
     varying = [k for k in range(dims - 3) if np.ptp(world[:, k]) > 0]
     feats = attributes.get("features")
     has_t = feats is not None and "t" in pd.DataFrame(feats).columns
