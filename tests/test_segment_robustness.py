@@ -576,3 +576,51 @@ def test_only_the_plateaus_a_detection_lies_on_are_split(monkeypatch):
     dets = rng.uniform(0, 1, (50, 3)) * np.array(vol.shape) * vox
     segment._one_per_saturated_nucleus(vol, vox, dets, np.arange(50.0)[::-1], 3.0)
     assert len(calls) <= 50, f"{len(calls)} plateaus cut for 50 detections"
+
+
+def test_unmixed_colours_do_not_depend_on_colour_channels_scaled_to_one(small):
+    """Colour channels normalised to [0, 1] (counts / 65535) beside W in counts: R and G are
+    z-scored per volume, so their scale must not matter (the W-dimmer case is already handled,
+    test_unmixed_colours_do_not_depend_on_the_gain_of_the_w_channel). Instead the bleed slope,
+    now ~1e-6, is below minimize_scalar's absolute tolerance (xatol 1e-5) on [0, 1]: the
+    search returns ~6e-6, several times the true slope, and R / G z-scores move by 0.7-0.8 SD."""
+    stack, truth = small
+    data = np.asarray(stack.data).astype(np.float32)
+    ref = measure_colours(Stack(data, stack.voxel_size_zyx, ROLES), truth.xyz)
+    scaled = data.copy()
+    scaled[:3] /= 65535.0
+    got = measure_colours(Stack(scaled, stack.voxel_size_zyx, ROLES), truth.xyz)
+    np.testing.assert_allclose(got["B"], ref["B"], atol=1e-3)  # not unmixed: scale-free already
+    np.testing.assert_allclose(got["R"], ref["R"], atol=0.05)
+    np.testing.assert_allclose(got["G"], ref["G"], atol=0.05)
+
+
+def test_float32_pixels_near_float32_s_maximum_are_detected(small):
+    """float32 pixels up to 3.3e38 (finite float32; the docs' rescaling of wide pixels exists
+    so that a channel's scale does not change detection). Expected: the nuclei of the unscaled
+    stack. Instead _bin sums 2 x 2 blocks in float32 ('overflow encountered in add'), the
+    band-pass turns inf into NaN ('invalid value encountered in subtract') and no nucleus is
+    found, silently apart from the RuntimeWarnings."""
+    stack, _ = small
+    data = np.asarray(stack.data).astype(np.float32)
+    base = segment_stack(Stack(data, stack.voxel_size_zyx, ROLES))
+    huge = data * np.float32(3.3e38 / data.max())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        found = segment_stack(Stack(huge, stack.voxel_size_zyx, ROLES))
+    assert len(found) == len(base), f"{len(found)} nuclei, unscaled {len(base)}"
+    np.testing.assert_allclose(found.xyz, base.xyz, atol=0.05)
+
+
+def test_a_stack_without_nuclei_keeps_its_colour_and_gfp_columns():
+    """docs/segmentation.md: output columns R, G, B, W 'for the channels present' and GFP
+    'when there is a GFP channel'. A stack where nothing is found (a blank volume) gives a
+    table whose header lacks R, G, B, W and GFP (measure_colours skips every channel when
+    there are no centres), so the CSV written has only x_um, y_um, z_um, label, x_px, y_px,
+    z_px, score: a header that says the stack had no colour channels."""
+    data = np.full((5, 5, 40, 40), 100, np.uint16)
+    table = segment_stack(Stack(data, (1.0, 0.25, 0.25), [*ROLES, "GFP"]))
+    assert len(table) == 0
+    columns = list(table.to_dataframe().columns)
+    for c in [*ROLES, "GFP"]:
+        assert c in columns, columns

@@ -616,3 +616,34 @@ def test_set_recording_by_the_name_of_one_of_its_layers(track_widget, recording)
         getattr(viewer, f"add_{kind}")(data, **kwargs)
     widget.set_recording("recording [W]")
     assert widget.source_combo.currentText() == "recording: recording"
+
+
+def test_a_point_added_on_a_timed_recordings_empty_frame_is_saved_at_its_frame(track_widget, recording, tmp_path):
+    """gui.md: the Track widget's points saved with File > Save are "a sequence table that fdlc
+    track reads; a point added by hand takes the time of its frame". A recording's t column is
+    its frame number (0, 1, 2 here: frame 1 has no nuclei and is left out). With the recording's
+    layers given a time scale/offset (0.25 s per volume from 3 s; the results follow it, as
+    tracking.md says), a point added by hand at frame 1 is saved with t = 3.25 (its world time,
+    write_neuron_csv/_times_of_frames falling back to ``world[:, -4]``) instead of 1: the saved
+    sequence mixes frame numbers with seconds (0, 2, 3.25), so it no longer lies on the
+    recording's frames when read again."""
+    from napari_fdlc._napari._io import read_stack_layers
+
+    def blank_second(data):
+        data[1] = np.median(data[0])
+        return data
+
+    viewer, widget = track_widget
+    for data, kwargs, kind in read_stack_layers(str(recording[0])):
+        getattr(viewer, f"add_{kind}")(blank_second(np.array(data)), **kwargs)
+    for layer in list(viewer.layers):
+        layer.scale = (0.25, *tuple(layer.scale)[1:])
+        layer.translate = (3.0, *tuple(layer.translate)[1:])
+    _, points = widget.run()
+    assert widget.last_error is None, widget.last_error
+    assert set(np.unique(points.data[:, 0])) == {0, 2}
+    points.add([[1, 5.0, 5.0, 5.0]])  # on the empty frame 1
+    viewer.layers.selection = {points}
+    viewer.layers.save(str(tmp_path / "out.csv"), selected=True, plugin="napari-fdlc")
+    saved = pd.read_csv(tmp_path / "out.csv")
+    assert saved["t"].iloc[-1] == 1, sorted(saved["t"].unique())

@@ -342,11 +342,16 @@ def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
     df = pd.DataFrame({"x_um": world[:, -1], "y_um": world[:, -2], "z_um": world[:, -3]})
     if varying and not has_t:
         df["t"] = world[:, -4]
+    # The Track widget's points sit at their frames on the recording's time axis (a scale or an
+    # offset in seconds): a point added on a frame none was found on takes the frame's number,
+    # like the rest of the sequence, not its time in seconds
+    meta = (attributes.get("metadata") or {}).get(META_KEY) or {}
+    frames = data[:, -4] if dims >= 4 and meta.get("tracks") else world[:, -4] if dims >= 4 else None
     data = data[:, -3:]
     feats = pd.DataFrame(feats) if feats is not None else pd.DataFrame(index=range(len(df)))
     feats = feats.reset_index(drop=True)
     if has_t and dims >= 4:
-        feats["t"] = _times_of_frames(world[:, -4], feats["t"])
+        feats["t"] = _times_of_frames(frames, feats["t"])
     elif has_t:  # one volume with a t column: a point added by hand is at its time too
         blank = feats["t"].isna() | feats["t"].astype(str).str.strip().eq("")
         known = pd.unique(feats["t"][~blank])
@@ -358,7 +363,7 @@ def write_neuron_csv(path: str, data, attributes: dict) -> list[str]:
         df[c] = feats[c].to_numpy() if c in feats.columns else ""
     # the review layer's own columns ('neuron', 'shown'), and voxel coordinates written anew
     # below; a table's own columns of those names are kept
-    review = "session" in (((attributes.get("metadata") or {}).get(META_KEY)) or {})
+    review = "session" in meta
     # (NeuroPAL_ID's 'Internal X (px)' too: with x_px written anew, a moved point's would be stale)
     left_out = ({"neuron", "shown"} if review else set()) | (set(PIXEL_COLUMNS) if scaled else set())
     for c in feats.columns:
