@@ -362,3 +362,14 @@ def test_a_missing_name_in_a_nullable_string_column_is_no_name():
     df = pd.DataFrame({"x_um": [1.0, 2.0, 3.0], "y_um": [1.0, 2.0, 3.0], "z_um": [1.0, 2.0, 3.0],
                        "label": pd.array(["AVAL", None, "AVAR"], dtype="string")})
     assert list(table_from_dataframe(df).labels) == ["AVAL", "", "AVAR"]
+
+
+def test_a_table_with_old_mac_line_ends_reads(tmp_path):
+    """Excel for Mac's "CSV (Macintosh)" ends rows with a bare carriage return: read as rows,
+    a quoted cell keeping its own carriage return (the file is read as written, no newline
+    translation, and the csv module is given the text as it asks)."""
+    path = tmp_path / "mac.csv"
+    path.write_bytes(b'x_um,y_um,z_um,label,note\r1,2,3,AVAL,a\r4,5,6,,"p\rq"\r')
+    table = read_table(path)
+    assert table.xyz.tolist() == [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]
+    assert list(table.labels) == ["AVAL", ""] and table.extra["note"].tolist() == ["a", "p\rq"]

@@ -362,7 +362,7 @@ def _csv_records(text: str):
     """The rows of CSV ``text``, with no practical limit on a cell's length (pandas has none: a
     long note in a column of its own is a cell, not an error; 2**31 - 1 fits every C long)."""
     csv.field_size_limit(2**31 - 1)
-    return csv.reader(io.StringIO(text))
+    return csv.reader(io.StringIO(text, newline=""))  # as the csv module asks: "\r" ends a row, kept in a quoted cell
 
 
 def _record_lines(text: str, skiprows: int) -> list[int]:
