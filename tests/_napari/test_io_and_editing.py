@@ -195,6 +195,28 @@ def test_headless_demo(sample_files, identifier, templates, tmp_path, qtbot):
     assert not list(shot.parent.glob(".*.tmp"))  # written through a temporary file, renamed
 
 
+def test_headless_demo_screenshot_not_writable_is_one_line(sample_files, identifier, templates, tmp_path,
+                                                           monkeypatch, capsys, qtbot):
+    """`make demo` without a display where demo_output/screenshot.png cannot be written (here a
+    folder of that name; likewise a full disk or a read-only file): one line 'fdlc: error: ...'
+    and exit 2, no labels.csv beside it. save_screenshot's OSError (IsADirectoryError) escaped
+    demo.main as a traceback, after labels.csv was written."""
+    import functools
+
+    from napari_fdlc import demo
+    from napari_fdlc._napari import demo_flow
+
+    monkeypatch.setattr(demo_flow, "run_demo", functools.partial(demo_flow.run_demo, identifier=identifier,
+                                                                 templates=templates))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("FDLC_NO_GUI", raising=False)
+    (tmp_path / "demo_output" / "screenshot.png").mkdir(parents=True)
+    rc = demo.main(["--headless"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "screenshot.png" in err and err.strip().count("\n") == 0, (rc, err)
+    assert not (tmp_path / "demo_output" / "labels.csv").exists()
+
+
 def test_closing_the_widget_unbinds_its_keys(make_napari_viewer, sample_files, qtbot):
     viewer = make_napari_viewer()
     viewer.open_sample("napari-fdlc", "neuropal")

@@ -236,14 +236,7 @@ def test_a_track_reference_with_a_repeated_name_says_so_in_napari(track_widget, 
     widget.set_reference(ref)
     before = len(notification_manager.records)
     assert widget.run() is not None, widget.last_error
-    from qtpy.QtWidgets import QApplication
-
-    deadline = time.monotonic() + 5.0  # the warning reaches napari through the Qt event loop
-    while time.monotonic() < deadline and not any(
-            labels[named[0]] in str(r.message) for r in notification_manager.records[before:]):
-        QApplication.processEvents()
-        time.sleep(0.01)
-    messages = [str(r.message) for r in notification_manager.records[before:]]
+    messages = _messages_since(before, 5.0, until=labels[named[0]])
     assert any(labels[named[0]] in m for m in messages), messages
 
 
@@ -261,7 +254,7 @@ def test_a_sequence_in_pixels_says_so_in_napari(track_widget, tmp_path):
     widget.set_sequence(seq)
     before = len(notification_manager.records)
     assert widget.run() is not None, widget.last_error
-    messages = [str(r.message) for r in notification_manager.records[before:]]
+    messages = _messages_since(before, 5.0, until="must be micrometres")
     assert any("must be micrometres" in m for m in messages), messages
 
 
@@ -311,11 +304,14 @@ def _open_recording(viewer, path, change=None):
         getattr(viewer, f"add_{kind}")(change(np.array(data)) if change else data, **kwargs)
 
 
-def _messages_since(before: int, wait: float = 2.0) -> list[str]:
+def _messages_since(before: int, wait: float = 2.0, until: str | None = None) -> list[str]:
+    """napari's notifications since record ``before``, after ``wait`` seconds of Qt events (a
+    warning reaches napari through the event loop), or as soon as one holds ``until``."""
     from qtpy.QtWidgets import QApplication
 
     deadline = time.monotonic() + wait
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and not (
+            until and any(until in str(r.message) for r in notification_manager.records[before:])):
         QApplication.processEvents()
         time.sleep(0.01)
     return [str(r.message) for r in notification_manager.records[before:]]
